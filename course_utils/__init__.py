@@ -1,0 +1,1 @@
+"""course_utils: the small library behind the policy-gradient course."""

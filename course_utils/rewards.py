@@ -1,0 +1,149 @@
+"""The rule checker: the only judge of a completion in this course.
+
+The rule, exactly
+-----------------
+A completion is judged on its *text*: the completion's tokens decoded with special tokens
+skipped (so an end-of-sequence token such as ``<|im_end|>`` is not text), then stripped of
+leading and trailing whitespace (``str.strip``). On that text:
+
+* **characters** are Python ``str`` characters (Unicode code points): ``len(text)``.
+  "é" is one character, so is "7"; a space inside the text counts.
+* **digits** are the ASCII characters ``0``-``9`` only. ``str.isdigit`` also accepts
+  superscripts and other scripts' digits ("²", "٣") that ``int`` rejects or that a reader
+  would not call digits; they count as ordinary characters here, never as digits.
+* **digit sum**: the sum of the values of those ASCII digits ("a1b22" -> 5; no digits -> 0).
+* the **length constraint** passes when ``len(text) == target_chars``;
+  the **digit constraint** passes when ``digit_sum == target_digit_sum``.
+
+Where the targets come from: for an instruction-tuned model each prompt states its own
+``target_chars`` and ``target_digit_sum`` in the instruction (see ``data.build_prompt``); for a
+base model such as gpt2, which cannot read instructions, both are fixed by the config.
+
+Two rewards are provided, both with TRL's reward-function signature
+``f(prompts, completions, **kwargs) -> list[float]``; the targets arrive as per-completion
+lists in ``kwargs``, exactly as TRL passes extra dataset columns:
+
+* ``binary_reward``: 1.0 when both constraints pass, else 0.0 (the recipe's reward);
+* ``shaped_reward``: partial credit, the mean of a length credit and a digit credit, each 1 when
+  met exactly and falling smoothly towards 0 as the miss grows, never reaching it (see
+  ``shaped_score``), so a group of different misses always has some spread to learn from.
+  It equals 1.0 exactly when ``binary_reward`` does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+ASCII_DIGITS = "0123456789"
+
+
+def completion_text(completion: Any) -> str:
+    """The text a rule is applied to: str as given, or the last message of a chat completion.
+
+    TRL passes plain strings for standard datasets and lists of ``{"role", "content"}`` dicts
+    for conversational ones; both are accepted. Surrounding whitespace is stripped.
+    """
+    if isinstance(completion, str):
+        text = completion
+    elif isinstance(completion, (list, tuple)) and completion and isinstance(completion[-1], dict):
+        text = str(completion[-1].get("content", ""))
+    elif isinstance(completion, dict):
+        text = str(completion.get("content", ""))
+    else:
+        raise TypeError(f"a completion must be a str or a list of chat messages, got "
+                        f"{type(completion).__name__}: {completion!r:.80}")
+    return text.strip()
+
+
+def digit_sum(text: str) -> int:
+    """Sum of the ASCII digits 0-9 in ``text``; other Unicode digits are not digits here."""
+    return sum(ord(c) - ord("0") for c in text if c in ASCII_DIGITS)
+
+
+@dataclass(frozen=True)
+class RuleCheck:
+    """Everything the checker measured about one completion."""
+    n_chars: int
+    digit_sum: int
+    length_ok: bool
+    digits_ok: bool
+
+    @property
+    def passed(self) -> bool:
+        return self.length_ok and self.digits_ok
+
+
+def check(completion: Any, target_chars: int, target_digit_sum: int) -> RuleCheck:
+    """Apply the rule to one completion (see the module docstring for the exact definition)."""
+    text = completion_text(completion)
+    n, s = len(text), digit_sum(text)
+    return RuleCheck(n_chars=n, digit_sum=s, length_ok=n == target_chars,
+                     digits_ok=s == target_digit_sum)
+
+
+def shaped_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
+    """Partial credit in (0, 1]: 1/2 * length credit + 1/2 * digit credit, where
+
+    length credit = 1 / (1 + |n_chars - target_chars| / target_chars)
+    digit credit  = 1 / (1 + |digit_sum - target_digit_sum| / max(target_digit_sum, 1))
+
+    A miss by the whole target halves a credit; a miss ten times the target leaves 1/11. Each is
+    1 only when its constraint passes, so the score is 1 only when both do. Unlike a linear
+    ramp clipped at 0, a completion three times too long still scores better than one five
+    times too long, so early, very long completions still give a learning signal.
+    """
+    length_credit = 1.0 / (1.0 + abs(result.n_chars - target_chars) / target_chars)
+    digit_credit = 1.0 / (1.0 + abs(result.digit_sum - target_digit_sum) / max(target_digit_sum, 1))
+    return 0.5 * length_credit + 0.5 * digit_credit
+
+
+def _targets(name: str, kwargs: dict, n: int) -> list[int]:
+    """Per-completion targets from TRL-style kwargs (a list, one entry per completion)."""
+    if name not in kwargs:
+        raise KeyError(f"reward needs the '{name}' column (one value per completion); got only "
+                       f"{sorted(kwargs)}")
+    values = kwargs[name]
+    if isinstance(values, int):  # convenience: one target for every completion
+        return [values] * n
+    if len(values) != n:
+        raise ValueError(f"'{name}' has {len(values)} values for {n} completions")
+    return [int(v) for v in values]
+
+
+def check_all(completions: Sequence[Any], **kwargs) -> list[RuleCheck]:
+    """``check`` on every completion, targets taken from kwargs as TRL passes them."""
+    n = len(completions)
+    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
+    return [check(c, L, S) for c, L, S in zip(completions, chars, sums)]
+
+
+def binary_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """The recipe's reward: 1.0 if the length and digit-sum constraints both pass, else 0.0."""
+    return [float(r.passed) for r in check_all(completions, **kwargs)]
+
+
+def shaped_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """Partial-credit reward in [0, 1] (see ``shaped_score``); 1.0 exactly when both pass."""
+    n = len(completions)
+    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
+    return [shaped_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+
+
+def length_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """1.0 if the length constraint alone passes (useful as a TRL metric or a curriculum)."""
+    return [float(r.length_ok) for r in check_all(completions, **kwargs)]
+
+
+def digit_sum_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """1.0 if the digit-sum constraint alone passes."""
+    return [float(r.digits_ok) for r in check_all(completions, **kwargs)]
+
+
+REWARDS = {"binary": binary_reward, "shaped": shaped_reward}
+
+
+def get_reward_fn(name: str):
+    if name not in REWARDS:
+        raise ValueError(f"unknown reward {name!r}; choose one of {', '.join(REWARDS)}")
+    return REWARDS[name]

@@ -1,0 +1,185 @@
+"""Sampling G completions per prompt, and scoring tokens under the policy.
+
+The sampler is a plain loop over a key/value cache rather than ``model.generate`` so that every
+step is visible: the distribution sampled from (logits / temperature) is the one whose
+log-probabilities are returned, and the G completions of a prompt share one prefill of that
+prompt (its keys and values are computed once, then copied G times).
+
+Layout: prompts are left-padded (every row ends where sampling starts), completions are
+right-padded. Row g * G + j holds completion j of prompt g.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from .losses import token_entropy
+
+
+@dataclass
+class Rollout:
+    prompt_ids: torch.Tensor       # [N, P] left-padded prompt tokens (each prompt repeated G times)
+    prompt_mask: torch.Tensor      # [N, P] 1 on real prompt tokens
+    completion_ids: torch.Tensor   # [N, T] sampled tokens, padding after the first EOS
+    completion_mask: torch.Tensor  # [N, T] 1 up to and including the first EOS
+    logprobs: torch.Tensor         # [N, T] log pi(token) under the distribution sampled from; 0 on padding
+    texts: list[str]               # decoded completions, special tokens skipped
+    truncated: torch.Tensor        # [N] True where no EOS came within max_new_tokens
+    group_size: int
+
+    @property
+    def lengths(self) -> torch.Tensor:
+        return self.completion_mask.sum(-1)
+
+
+def completion_mask(completion_ids: torch.Tensor, eos_ids: list[int]) -> torch.Tensor:
+    """1 on every token up to and including the first EOS, 0 after it.
+
+    Built from the *position* of the first EOS, never from the pad id: for SmolLM2 and
+    Qwen2.5 pad == EOS, and ``ids != pad_id`` would drop the real EOS token, so the model would
+    never be trained to stop. A row with no EOS (truncated) is all ones.
+    """
+    is_eos = torch.isin(completion_ids, torch.tensor(eos_ids, device=completion_ids.device))
+    T = completion_ids.shape[1]
+    first_eos = torch.where(is_eos.any(-1), is_eos.int().argmax(-1), T)
+    positions = torch.arange(T, device=completion_ids.device)
+    return (positions.unsqueeze(0) <= first_eos.unsqueeze(-1)).long()
+
+
+def _positions(mask: torch.Tensor) -> torch.Tensor:
+    """Position ids that start at 0 on each row's first real token (left padding skipped)."""
+    return (mask.long().cumsum(-1) - 1).clamp(min=0)
+
+
+@torch.no_grad()
+def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_size: int,
+           max_new_tokens: int, eos_ids: list[int], pad_id: int, temperature: float = 1.0,
+           greedy: bool = False, generator: torch.Generator | None = None):
+    """Sample ``group_size`` continuations of each prompt. Returns (ids, logprobs), [N, T].
+
+    The prompt is prefilled once per *prompt* and its cache repeated G times (exact: the G
+    copies see identical keys and values). Only the last prompt position's logits are
+    computed. Log-probabilities are those of the tempered distribution actually sampled from;
+    for ``greedy`` they are of the untempered distribution.
+    """
+    positions = _positions(prompt_mask)
+    out = model(input_ids=prompt_ids, attention_mask=prompt_mask, position_ids=positions,
+                use_cache=True, logits_to_keep=1)
+    cache, logits = out.past_key_values, out.logits[:, -1].float()
+    if group_size > 1:
+        cache.batch_repeat_interleave(group_size)
+        logits = logits.repeat_interleave(group_size, 0)
+        prompt_mask = prompt_mask.repeat_interleave(group_size, 0)
+        positions = positions.repeat_interleave(group_size, 0)
+    n = logits.shape[0]
+    attention = prompt_mask
+    next_position = positions[:, -1:] + 1
+    eos = torch.tensor(eos_ids, device=logits.device)
+    done = torch.zeros(n, dtype=torch.bool, device=logits.device)
+    tokens, token_logprobs = [], []
+    for _ in range(max_new_tokens):
+        logp = F.log_softmax(logits if greedy else logits / temperature, dim=-1)
+        if greedy:
+            token = logp.argmax(-1)
+        else:
+            token = torch.multinomial(logp.exp(), 1, generator=generator).squeeze(-1)
+        token = torch.where(done, torch.full_like(token, pad_id), token)
+        tokens.append(token)
+        token_logprobs.append(logp.gather(-1, token.unsqueeze(-1)).squeeze(-1))
+        done |= torch.isin(token, eos)
+        if done.all():
+            break
+        attention = torch.cat([attention, attention.new_ones(n, 1)], dim=-1)
+        out = model(input_ids=token.unsqueeze(-1), attention_mask=attention,
+                    position_ids=next_position, past_key_values=cache, use_cache=True)
+        logits, next_position = out.logits[:, -1].float(), next_position + 1
+    return torch.stack(tokens, -1), torch.stack(token_logprobs, -1)
+
+
+def tokenize_prompts(tokenizer, prompts: list[str], device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Left-padded prompt ids and mask. Prompts are complete strings (a chat template, if any,
+    is already applied), so no special tokens are added here."""
+    tokenizer.padding_side = "left"
+    enc = tokenizer(prompts, return_tensors="pt", padding=True, add_special_tokens=False)
+    return enc["input_ids"].to(device), enc["attention_mask"].to(device)
+
+
+def rollout(model, tokenizer, prompts: list[str], *, group_size: int, max_new_tokens: int,
+            eos_ids: list[int], temperature: float = 1.0, greedy: bool = False,
+            generator: torch.Generator | None = None) -> Rollout:
+    """Sample ``group_size`` completions for each prompt and package everything training needs.
+
+    Completions are trimmed to the longest live one, so no step pays for columns of padding.
+    """
+    device = next(model.parameters()).device
+    prompt_ids, prompt_mask = tokenize_prompts(tokenizer, prompts, device)
+    ids, logprobs = sample(model, prompt_ids, prompt_mask, group_size=group_size,
+                           max_new_tokens=max_new_tokens, eos_ids=eos_ids,
+                           pad_id=tokenizer.pad_token_id, temperature=temperature,
+                           greedy=greedy, generator=generator)
+    mask = completion_mask(ids, eos_ids)
+    longest = int(mask.sum(-1).max())
+    ids, logprobs, mask = ids[:, :longest], logprobs[:, :longest], mask[:, :longest]
+    is_eos = torch.isin(ids, torch.tensor(eos_ids, device=ids.device))
+    truncated = ~(is_eos & mask.bool()).any(-1)
+    texts = tokenizer.batch_decode([row[m.bool()] for row, m in zip(ids, mask)],
+                                   skip_special_tokens=True)
+    return Rollout(prompt_ids=prompt_ids.repeat_interleave(group_size, 0),
+                   prompt_mask=prompt_mask.repeat_interleave(group_size, 0),
+                   completion_ids=ids, completion_mask=mask, logprobs=logprobs * mask,
+                   texts=texts, truncated=truncated, group_size=group_size)
+
+
+def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor,
+                        completion_ids: torch.Tensor, completion_mask: torch.Tensor, *,
+                        temperature: float = 1.0, with_entropy: bool = False, group_size: int = 1):
+    """log pi_theta(o_t | q, o_<t) for every completion token (with autograd), and optionally
+    the per-token entropy. Logits are computed for completion positions only.
+
+    The same temperature as in sampling is applied, so on-policy the ratio pi_theta / pi_old
+    starts at exactly 1 (up to floating-point noise).
+
+    With ``group_size`` G > 1 (rows g*G ... g*G+G-1 share one prompt), each prompt is forwarded
+    once, with autograd, and its keys/values are repeated for its G completions. The result and
+    the gradient are those of the full-sequence forward (the copies are the same tensors, and
+    the gradient of a repeat sums over the copies), at about 1/G of the prompt's cost.
+    """
+    if group_size > 1:
+        logits = _shared_prompt_logits(model, prompt_ids, prompt_mask, completion_ids,
+                                       completion_mask, group_size)
+    else:
+        input_ids = torch.cat([prompt_ids, completion_ids], dim=-1)
+        attention = torch.cat([prompt_mask, completion_mask.to(prompt_mask.dtype)], dim=-1)
+        T = completion_ids.shape[1]
+        # Position P-1+t predicts completion token t, so keep the last T+1 positions and drop
+        # the final one (it would predict a token after the completion).
+        logits = model(input_ids=input_ids, attention_mask=attention,
+                       position_ids=_positions(attention), logits_to_keep=T + 1).logits[:, :-1]
+    logits = logits.float() / temperature
+    # gather minus logsumexp = log_softmax at the chosen token, without a second [N, T, V] tensor
+    logprobs = logits.gather(-1, completion_ids.unsqueeze(-1)).squeeze(-1) - logits.logsumexp(-1)
+    entropy = None
+    if with_entropy:
+        entropy = token_entropy(logits)
+    return logprobs, entropy
+
+
+def _shared_prompt_logits(model, prompt_ids, prompt_mask, completion_ids, completion_mask, G):
+    """Logits predicting each completion token, with every prompt forwarded once for its group."""
+    P, T = prompt_ids.shape[1], completion_ids.shape[1]
+    unique_ids, unique_mask = prompt_ids[::G], prompt_mask[::G]
+    out = model(input_ids=unique_ids, attention_mask=unique_mask, position_ids=_positions(unique_mask),
+                use_cache=True, logits_to_keep=1)
+    first = out.logits[:, -1:].repeat_interleave(G, 0)      # the last prompt position predicts o_0
+    if T == 1:
+        return first
+    cache = out.past_key_values
+    cache.batch_repeat_interleave(G)                         # differentiable: gradients add up
+    attention = torch.cat([prompt_mask, completion_mask.to(prompt_mask.dtype)], dim=-1)
+    positions = _positions(attention)
+    rest = model(input_ids=completion_ids[:, :-1], attention_mask=attention[:, :P + T - 1],
+                 position_ids=positions[:, P:P + T - 1], past_key_values=cache, use_cache=True).logits
+    return torch.cat([first, rest], dim=1)

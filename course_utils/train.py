@@ -1,0 +1,417 @@
+"""The GRPO training loop shared by the notebooks and the command line.
+
+    python -m course_utils.train --preset cpu          # the main job: offline, ~10 min on 2 cores
+    python -m course_utils.train --preset cpu --lr 3e-5 --out_dir runs/mine
+    python -m course_utils.train --preset cpu --resume # continue a run from its checkpoint
+
+One step: sample G completions for each of B prompts (no autograd) -> score them with the rule
+checker -> group-relative advantages -> forward the completions with autograd -> GRPO loss ->
+backward (micro-batch by micro-batch) -> clip the gradient norm -> AdamW step. Every step
+appends one record to ``metrics.jsonl``; checkpoints are written every ``save_every`` steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from . import checkpoint, data, losses, models, rewards
+from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
+from .rollout import completion_logprobs, rollout
+
+
+class RewardError(ValueError):
+    """A reward function misbehaved; the message names the completion involved."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Scoring
+# ---------------------------------------------------------------------------------------------
+
+
+def score(prompts: list[data.Prompt], texts: list[str], reward_name: str) -> dict[str, torch.Tensor]:
+    """Rewards and the per-constraint flags for completions (``prompts`` already repeated G times)."""
+    targets = dict(target_chars=[p.target_chars for p in prompts],
+                   target_digit_sum=[p.target_digit_sum for p in prompts])
+    reward_fn = rewards.get_reward_fn(reward_name)
+    try:
+        values = reward_fn(prompts=[p.text for p in prompts], completions=texts, **targets)
+    except Exception as err:
+        raise RewardError(f"reward function {reward_name!r} raised {type(err).__name__}: {err}") from err
+    if len(values) != len(texts):
+        raise RewardError(f"reward function {reward_name!r} returned {len(values)} values for "
+                          f"{len(texts)} completions")
+    for text, value in zip(texts, values):
+        if not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise RewardError(f"reward function {reward_name!r} returned {value!r} for the "
+                              f"completion {text!r:.120}; rewards must be finite numbers")
+    checks = rewards.check_all(texts, **targets)
+    return dict(
+        rewards=torch.tensor(values, dtype=torch.float32),
+        length_ok=torch.tensor([c.length_ok for c in checks], dtype=torch.float32),
+        digits_ok=torch.tensor([c.digits_ok for c in checks], dtype=torch.float32),
+        passed=torch.tensor([c.passed for c in checks], dtype=torch.float32),
+        chars_abs_error=torch.tensor([abs(c.n_chars - p.target_chars) for c, p in zip(checks, prompts)],
+                                     dtype=torch.float32),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation
+# ---------------------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def evaluate(model, tokenizer, prompts: list[data.Prompt], cfg: Config, eos_ids: list[int], *,
+             greedy: bool, batch_size: int = 16) -> dict:
+    """One completion per held-out prompt, sampled at the training temperature or greedy.
+
+    Uses its own generator seeded from the config, so evaluation is reproducible and does not
+    move the training random stream.
+    """
+    generator = torch.Generator(device=next(model.parameters()).device).manual_seed(cfg.seed + 12345)
+    texts = []
+    for start in range(0, len(prompts), batch_size):
+        chunk = prompts[start:start + batch_size]
+        out = rollout(model, tokenizer, [p.text for p in chunk], group_size=1,
+                      max_new_tokens=cfg.max_new_tokens, eos_ids=eos_ids,
+                      temperature=cfg.temperature, greedy=greedy, generator=generator)
+        texts.extend(out.texts)
+    s = score(prompts, texts, cfg.reward)
+    checks = [rewards.check(t, p.target_chars, p.target_digit_sum) for t, p in zip(texts, prompts)]
+    return dict(
+        reward_mean=float(s["rewards"].mean()), pass_length=float(s["length_ok"].mean()),
+        pass_digits=float(s["digits_ok"].mean()), pass_both=float(s["passed"].mean()),
+        chars_abs_error=float(s["chars_abs_error"].mean()),
+        samples=[dict(snippet=p.snippet[-60:], target_chars=p.target_chars,
+                      target_digit_sum=p.target_digit_sum, completion=t, n_chars=c.n_chars,
+                      digit_sum=c.digit_sum) for p, t, c in zip(prompts, texts, checks)],
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# One GRPO step
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Policy:
+    """Everything a step needs besides the data; built once by ``setup``."""
+    cfg: Config
+    model: typing.Any
+    tokenizer: typing.Any
+    optimizer: torch.optim.Optimizer
+    scheduler: typing.Any
+    accelerator: typing.Any
+    eos_ids: list[int]
+    generator: torch.Generator
+    ref_model: typing.Any = None
+    counters: dict = field(default_factory=lambda: {"nonfinite_skipped": 0})
+
+
+def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
+    """Sample, score, and update once on ``prompts``. Returns the step's metrics."""
+    cfg, model, acc = policy.cfg, policy.model, policy.accelerator
+    G = cfg.group_size
+    t0 = time.perf_counter()
+    ro = rollout(model, policy.tokenizer, [p.text for p in prompts], group_size=G,
+                 max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
+                 temperature=cfg.temperature, generator=policy.generator)
+    t_gen = time.perf_counter()
+    repeated = [p for p in prompts for _ in range(G)]
+    s = score(repeated, ro.texts, cfg.reward)
+    device = ro.completion_ids.device
+    advantages, zero_std = losses.group_advantages(s["rewards"], G, cfg.advantage_center,
+                                                   cfg.advantage_scale)
+    advantages = advantages.to(device)
+    ent_weight = losses.entropy_weight(s["rewards"], cfg.entropy_bonus, cfg.entropy_coef,
+                                       cfg.entropy_weight_max)
+    mask = ro.completion_mask
+    n_seq, n_tok, T = mask.shape[0], int(mask.sum()), mask.shape[1]
+
+    ref_logprobs = None
+    if cfg.kl_coef > 0:
+        with torch.no_grad():
+            ref_logprobs, _ = completion_logprobs(policy.ref_model, ro.prompt_ids, ro.prompt_mask,
+                                                  ro.completion_ids, mask, temperature=cfg.temperature)
+
+    rows_per_micro = n_seq // cfg.grad_accum  # whole groups per micro-batch (checked by validate)
+    stats_sum: dict[str, float] = {}
+    loss_total, grad_norm = 0.0, float("nan")
+    for update in range(cfg.updates_per_batch):
+        policy.optimizer.zero_grad(set_to_none=True)
+        step_ok = True
+        for start in range(0, n_seq, rows_per_micro):
+            rows = slice(start, start + rows_per_micro)
+            logprobs, entropy = completion_logprobs(
+                model, ro.prompt_ids[rows], ro.prompt_mask[rows], ro.completion_ids[rows],
+                mask[rows], temperature=cfg.temperature, with_entropy=True,
+                group_size=1 if cfg.gradient_checkpointing else G)
+            # One update per batch: pi_old is the current policy, so the ratio is exactly 1 and
+            # the step is REINFORCE with a group baseline. More updates: pi_old is the sampler.
+            old = logprobs.detach() if cfg.updates_per_batch == 1 else ro.logprobs[rows]
+            loss, stats = losses.grpo_loss(
+                logprobs, old, advantages[rows], mask[rows], loss_type=cfg.loss_type,
+                eps_low=cfg.clip_eps_low, eps_high=cfg.clip_eps_high,
+                ref_logprobs=None if ref_logprobs is None else ref_logprobs[rows],
+                beta=cfg.kl_coef, entropy=entropy, entropy_weight=ent_weight,
+                max_completion_length=cfg.max_new_tokens, total_sequences=n_seq,
+                total_tokens=n_tok)
+            if not torch.isfinite(loss):
+                step_ok = False
+                break
+            acc.backward(loss)
+            loss_total += float(loss.detach()) / cfg.updates_per_batch
+            for k, v in stats.items():  # token-weighted average over micro-batches
+                stats_sum[k] = stats_sum.get(k, 0.0) + v * float(mask[rows].sum()) / n_tok / cfg.updates_per_batch
+        if not step_ok:
+            policy.counters["nonfinite_skipped"] += 1
+            policy.optimizer.zero_grad(set_to_none=True)
+            print(f"[course_utils] non-finite loss at this step: update skipped "
+                  f"({policy.counters['nonfinite_skipped']} so far)")
+            continue
+        grad_norm = float(acc.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
+        if not math.isfinite(grad_norm):
+            policy.counters["nonfinite_skipped"] += 1
+            policy.optimizer.zero_grad(set_to_none=True)
+            continue
+        policy.optimizer.step()
+    policy.scheduler.step()
+    t_end = time.perf_counter()
+    lengths = mask.sum(-1).float()
+    total_tokens = int(ro.prompt_mask.sum()) + n_tok
+    return dict(
+        reward_mean=float(s["rewards"].mean()), reward_std=float(s["rewards"].std()),
+        pass_length=float(s["length_ok"].mean()), pass_digits=float(s["digits_ok"].mean()),
+        pass_both=float(s["passed"].mean()), chars_abs_error=float(s["chars_abs_error"].mean()),
+        adv_mean=float(advantages.mean()), adv_std=float(advantages.std()),
+        adv_abs_mean=float(advantages.abs().mean()), zero_std_frac=zero_std / len(prompts),
+        entropy_weight=ent_weight, completion_tokens=float(lengths.mean()),
+        truncated_frac=float(ro.truncated.float().mean()), loss=loss_total, grad_norm=grad_norm,
+        lr=policy.scheduler.get_last_lr()[0], nonfinite_skipped=policy.counters["nonfinite_skipped"],
+        gen_time=t_gen - t0, train_time=t_end - t_gen, step_time=t_end - t0,
+        tokens_per_s=total_tokens / (t_end - t0), **stats_sum,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Set-up, the run, and the report
+# ---------------------------------------------------------------------------------------------
+
+
+def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
+    """Load tokenizer, policy (and reference model if kl_coef > 0), optimizer and scheduler."""
+    from accelerate import Accelerator
+
+    torch.manual_seed(cfg.seed)
+    mixed = {"fp32": "no", "fp16": "fp16", "bf16": "bf16"}[cfg.precision]
+    accelerator = Accelerator(mixed_precision=mixed)
+    tokenizer = models.load_tokenizer(cfg.model)
+    model = (models.load_policy(str(init_from)) if init_from else
+             models.load_policy(cfg.model, seed=cfg.seed))
+    if cfg.gradient_checkpointing:
+        model.gradient_checkpointing_enable()
+        model.config.use_cache = False  # the sampler passes use_cache=True explicitly
+    ref_model = None
+    if cfg.kl_coef > 0:  # no reference model at all when beta = 0: it would only cost memory
+        ref_model = models.load_policy(cfg.model, seed=cfg.seed).to(accelerator.device)
+        ref_model.requires_grad_(False)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    warmup = max(cfg.warmup_steps, 0)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: min(1.0, (step + 1) / (warmup + 1)) if warmup else 1.0)
+    model, optimizer = accelerator.prepare(model, optimizer)
+    generator = torch.Generator(device=accelerator.device).manual_seed(cfg.seed)
+    return Policy(cfg=cfg, model=model, tokenizer=tokenizer, optimizer=optimizer,
+                  scheduler=scheduler, accelerator=accelerator,
+                  eos_ids=models.eos_token_ids(accelerator.unwrap_model(model), tokenizer),
+                  generator=generator, ref_model=ref_model)
+
+
+def batch_for_step(step: int, prompts: list[data.Prompt], cfg: Config) -> list[data.Prompt]:
+    """The prompts of global step ``step``: a seeded shuffle per epoch, so a resumed run sees
+    exactly the batches an uninterrupted one would."""
+    epoch, index = divmod(step, cfg.steps_per_epoch)
+    order = torch.randperm(len(prompts), generator=torch.Generator().manual_seed(cfg.seed * 1000 + epoch))
+    B = cfg.prompts_per_step
+    return [prompts[int(order[k % len(prompts)])] for k in range(index * B, (index + 1) * B)]
+
+
+def _trainer_state(policy: Policy, step: int) -> dict:
+    return dict(step=step, optimizer=policy.optimizer.state_dict(),
+                scheduler=policy.scheduler.state_dict(), generator=policy.generator.get_state(),
+                torch_rng=torch.get_rng_state(), counters=dict(policy.counters),
+                config=policy.cfg.to_dict())
+
+
+def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
+    """The main job: evaluate, train with GRPO, evaluate again; write everything to out_dir."""
+    from tqdm.auto import tqdm
+
+    cfg.validate()
+    models.check_available(cfg.model)           # fail before anything slow happens
+    run_dir = Path(cfg.out_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    found = checkpoint.find(run_dir) if resume else None
+    state = checkpoint.load_state(found, cfg.to_dict()) if found else None
+    if resume and found is None:
+        print(f"[course_utils] no checkpoint in {run_dir}: starting from the beginning")
+    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+
+    policy = setup(cfg, init_from=found)
+    log = checkpoint.MetricsLog(run_dir / "metrics.jsonl")
+    start_step = 0
+    if state:
+        policy.optimizer.load_state_dict(state["optimizer"])
+        policy.scheduler.load_state_dict(state["scheduler"])
+        policy.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        policy.counters.update(state["counters"])
+        start_step = state["step"]
+        log.truncate_after(start_step)
+        print(f"[course_utils] resumed from {found} at step {start_step}")
+    elif log.path.exists():
+        log.path.unlink()  # a fresh run in an old directory starts a fresh log
+
+    train_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=False)
+    eval_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=True)
+    model = policy.model
+
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if (state and summary_path.exists()) else {}
+    if "before" not in summary:
+        summary["before"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg,
+                                            policy.eos_ids, greedy=mode == "greedy")
+                             for mode in ("sampled", "greedy")}
+        summary_path.write_text(json.dumps(summary, indent=2))
+        _print_eval("before training", summary["before"])
+
+    total = cfg.total_steps
+    bar = tqdm(range(start_step, total), initial=start_step, total=total, desc="GRPO",
+               disable=not progress)
+    for step in bar:
+        metrics = grpo_step(policy, batch_for_step(step, train_prompts, cfg))
+        record = dict(step=step + 1, epoch=step // cfg.steps_per_epoch, **metrics)
+        if cfg.eval_every and (step + 1) % cfg.eval_every == 0 and step + 1 < total:
+            ev = evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids, greedy=False)
+            record.update({f"eval_{k}": v for k, v in ev.items() if k != "samples"})
+        log.append(record)
+        bar.set_postfix(reward=f"{metrics['reward_mean']:.3f}", len_ok=f"{metrics['pass_length']:.2f}",
+                        both=f"{metrics['pass_both']:.2f}")
+        if (step + 1) % cfg.save_every == 0 or step + 1 == total:
+            checkpoint.save(run_dir, policy.accelerator.unwrap_model(model), policy.tokenizer,
+                            _trainer_state(policy, step + 1))
+
+    summary["after"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids,
+                                       greedy=mode == "greedy") for mode in ("sampled", "greedy")}
+    summary["steps"] = total
+    summary_path.write_text(json.dumps(summary, indent=2))
+    from .plots import plot_metrics
+
+    plot_metrics(log.read(), run_dir / "curves.png")
+    report = before_after_report(summary, cfg)
+    (run_dir / "report.md").write_text(report)
+    print(report)
+    return summary
+
+
+def _print_eval(title: str, result: dict) -> None:
+    for mode, r in result.items():
+        print(f"[course_utils] {title} ({mode}): reward {r['reward_mean']:.3f}, length pass "
+              f"{r['pass_length']:.1%}, digit pass {r['pass_digits']:.1%}, both {r['pass_both']:.1%}, "
+              f"mean |chars - target| {r['chars_abs_error']:.1f}")
+
+
+def before_after_report(summary: dict, cfg: Config, n_samples: int = 6) -> str:
+    """A Markdown before/after table of held-out metrics and sample completions."""
+    rows = [("mean reward", "reward_mean", "{:.3f}"), ("length pass rate", "pass_length", "{:.1%}"),
+            ("digit-sum pass rate", "pass_digits", "{:.1%}"), ("both (recipe pass rate)", "pass_both", "{:.1%}"),
+            ("mean abs(chars - target)", "chars_abs_error", "{:.1f}")]
+    n_eval = len(summary["before"]["sampled"]["samples"])
+    lines = [f"## Held-out evaluation: {n_eval} prompts, {summary.get('steps', '?')} GRPO steps, "
+             f"preset model {cfg.model}, reward '{cfg.reward}'", "",
+             "| metric | before (sampled) | after (sampled) | before (greedy) | after (greedy) |",
+             "|---|---|---|---|---|"]
+    for label, key, fmt in rows:
+        vals = [fmt.format(summary[when][mode][key]) for mode in ("sampled", "greedy")
+                for when in ("before", "after")]
+        lines.append(f"| {label} | " + " | ".join(vals) + " |")
+    lines += ["", "### Sample completions (greedy), targets: characters / digit sum", "",
+              "| target | before | chars / sum | after | chars / sum |", "|---|---|---|---|---|"]
+    before, after = summary["before"]["greedy"]["samples"], summary["after"]["greedy"]["samples"]
+    for b, a in list(zip(before, after))[:n_samples]:
+        def cell(t: str) -> str:
+            return t.replace("|", "\\|").replace("\n", " ")[:80]
+        lines.append(f"| {b['target_chars']} / {b['target_digit_sum']} | {cell(b['completion'])} | "
+                     f"{b['n_chars']} / {b['digit_sum']} | {cell(a['completion'])} | "
+                     f"{a['n_chars']} / {a['digit_sum']} |")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------------------------
+
+
+def _parse(raw: str, annotation: str, name: str):
+    """Turn a command-line string into the field's type (the annotations are strings)."""
+    if "None" in annotation and raw.lower() == "none":
+        return None
+    try:
+        if annotation.startswith("bool"):
+            if raw.lower() in {"1", "true", "yes"}:
+                return True
+            if raw.lower() in {"0", "false", "no"}:
+                return False
+            raise ValueError
+        if annotation.startswith("int"):
+            return int(raw)
+        if annotation.startswith("float"):
+            return float(raw)
+    except ValueError:
+        raise ConfigError(f"--{name} {raw!r} is not a valid {annotation.split(' ')[0]}") from None
+    return raw
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m course_utils.train",
+        description="GRPO on the rule-following task: evaluate, train, evaluate again.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--preset", default="smoke" if smoke_mode() else "cpu",
+                        help=f"one of {', '.join(PRESETS)} (smoke when COURSE_SMOKE=1)")
+    parser.add_argument("--resume", action="store_true", help="continue from out_dir's checkpoint")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    for f in Config.__dataclass_fields__.values():
+        parser.add_argument(f"--{f.name}", default=None, metavar=str(f.type).split(" ")[0].upper(),
+                            help=f.metadata.get("help", ""))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    overrides = {name: _parse(getattr(args, name), str(f.type), name)
+                 for name, f in Config.__dataclass_fields__.items() if getattr(args, name) is not None}
+    try:
+        cfg = load_config(args.preset, **overrides)
+    except ConfigError as err:
+        raise SystemExit(f"error: {err}") from None
+    print(f"[course_utils] preset {args.preset}: {cfg.total_steps} steps of {cfg.prompts_per_step} "
+          f"prompts x {cfg.group_size} completions, model {cfg.model}, writing to {cfg.out_dir}")
+    try:
+        train(cfg, resume=args.resume, progress=not args.no_progress)
+    except (models.ModelNotAvailable, data.DataUnavailable, checkpoint.CheckpointError,
+            RewardError) as err:
+        raise SystemExit(f"error: {err}") from None
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,61 @@
+"""Configuration: presets load, bad values fail with a message naming the field."""
+import pytest
+
+from course_utils.config import PRESETS, Config, ConfigError, load_config, smoke_mode
+
+
+@pytest.mark.parametrize("preset", sorted(set(PRESETS) - {"t4"}))
+def test_presets_validate(preset):
+    assert load_config(preset).total_steps >= 1
+
+
+def test_t4_preset_needs_a_gpu_for_fp16_and_says_so():
+    import torch
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    with pytest.raises(ConfigError, match="precision.*fp16 needs a CUDA GPU"):
+        load_config("t4")
+    assert load_config("t4", precision="fp32").model == "Qwen/Qwen2.5-0.5B-Instruct"
+
+
+@pytest.mark.parametrize("overrides, field, allowed", [
+    (dict(group_size=1), "group_size", ">= 2"),
+    (dict(target_chars=-5), "target_chars", ">= 1"),
+    (dict(prompt_tokens=0), "prompt_tokens", ">= 1"),
+    (dict(temperature=0.0), "temperature", "> 0"),
+    (dict(lr=-1e-5), "lr", "> 0"),
+    (dict(loss_type="mean"), "loss_type", "grpo, bnpo, dapo, dr_grpo"),
+    (dict(reward="dense"), "reward", "binary, shaped"),
+    (dict(clip_eps_low=1.5), "clip_eps_low", "(0, 1)"),
+    (dict(grad_accum=3), "grad_accum", "divide prompts_per_step"),
+    (dict(digit_sum_min=9, digit_sum_max=3), "digit_sum_min", "between 0 and digit_sum_max"),
+    (dict(digit_sum_max=1000), "digit_sum_max", "9 * target_chars"),
+    (dict(prompt_style="raw"), "digit_sum_max", "must equal digit_sum_min"),
+    (dict(entropy_bonus="constant", entropy_coef=0.0), "entropy_coef", "> 0"),
+    (dict(max_steps=0), "max_steps", ">= 1"),
+    (dict(advantage_scale="global"), "advantage_scale", "group, batch, none"),
+    (dict(kl_coef=-0.1), "kl_coef", ">= 0"),
+])
+def test_invalid_values_name_the_field_and_the_allowed_range(overrides, field, allowed):
+    with pytest.raises(ConfigError) as err:
+        load_config("smoke", **overrides)
+    assert field in str(err.value) and allowed in str(err.value)
+
+
+def test_unknown_key_and_preset_suggest_the_right_name():
+    with pytest.raises(ConfigError, match="did you mean 'group_size'"):
+        load_config("smoke", grop_size=4)
+    with pytest.raises(ConfigError, match="did you mean 'cpu'"):
+        load_config("cpux")
+
+
+def test_smoke_switch(monkeypatch):
+    monkeypatch.setenv("COURSE_SMOKE", "1")
+    assert smoke_mode()
+    monkeypatch.setenv("COURSE_SMOKE", "0")
+    assert not smoke_mode()
+
+
+def test_total_steps():
+    cfg = Config(train_prompts=10, prompts_per_step=4, epochs=3)
+    assert cfg.steps_per_epoch == 3 and cfg.total_steps == 9

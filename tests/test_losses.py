@@ -1,0 +1,218 @@
+"""Every estimator and loss checked against numbers worked out by hand or by exact enumeration."""
+import math
+
+import pytest
+import torch
+
+from course_utils import losses
+
+# ---------------------------------------------------------------- advantages, by hand
+
+
+def test_group_advantages_hand_computed_with_an_all_equal_group():
+    # group 1: [1, 0, 0, 1]: mean 0.5, Bessel std sqrt(1/3); group 2: all equal -> no signal
+    rewards = torch.tensor([1.0, 0.0, 0.0, 1.0, 0.7, 0.7, 0.7, 0.7])
+    adv, zero_std = losses.group_advantages(rewards, group_size=4)
+    expected = 0.5 / (math.sqrt(1 / 3) + 1e-4)
+    assert torch.allclose(adv[:4], torch.tensor([expected, -expected, -expected, expected]), atol=1e-6)
+    assert torch.equal(adv[4:], torch.zeros(4))
+    assert zero_std == 1
+
+
+def test_batch_normalization_differs_from_group_normalization():
+    # two prompts of different difficulty: per-group stats give each group mean-zero advantages,
+    # whole-batch stats (the seed text) favour every completion of the easy prompt
+    rewards = torch.tensor([1.0, 0.0, 1.0, 1.0])  # easy prompt 2 (both pass)
+    adv_group, z = losses.group_advantages(rewards, 2)
+    adv_batch, _ = losses.group_advantages(rewards, 2, center="batch", scale="batch")
+    assert z == 1 and torch.allclose(adv_group[2:], torch.zeros(2))
+    mean, std = 0.75, rewards.std().item()
+    assert torch.allclose(adv_batch, (rewards - mean) / (std + 1e-4), atol=1e-6)
+    assert (adv_batch[2:] > 0).all()
+
+
+def test_dr_grpo_scale_none_only_centres():
+    rewards = torch.tensor([3.0, 1.0, 2.0, 2.0])
+    adv, _ = losses.group_advantages(rewards, 2, scale="none")
+    assert torch.equal(adv, torch.tensor([1.0, -1.0, 0.0, 0.0]))
+
+
+def test_group_advantages_rejects_ragged_groups():
+    with pytest.raises(ValueError, match="multiple of group_size"):
+        losses.group_advantages(torch.ones(5), 2)
+
+
+# ---------------------------------------------------------------- baselines
+
+
+def test_leave_one_out_baseline_by_hand():
+    rewards = torch.tensor([1.0, 2.0, 6.0, 0.0, 0.0, 3.0])
+    b = losses.leave_one_out_baseline(rewards, 3)
+    assert torch.allclose(b, torch.tensor([4.0, 3.5, 1.5, 1.5, 1.5, 0.0]))
+
+
+def test_running_mean_baseline_uses_only_past_batches():
+    base = losses.RunningMeanBaseline(momentum=0.5)
+    first = base(torch.tensor([2.0, 4.0]))
+    assert torch.equal(first, torch.zeros(2))  # nothing seen yet: this batch is not used
+    second = base(torch.tensor([10.0, 10.0]))
+    assert torch.equal(second, torch.full((2,), 1.5))  # 0.5 * 0 + 0.5 * 3
+    assert base.value == pytest.approx(0.5 * 1.5 + 0.5 * 10)
+
+
+def test_batch_mean_baseline():
+    assert torch.equal(losses.batch_mean_baseline(torch.tensor([1.0, 3.0])), torch.tensor([2.0, 2.0]))
+
+
+# ---------------------------------------------------------------- REINFORCE
+
+
+def test_terminal_reward_gives_every_token_the_same_return():
+    mask = torch.tensor([[1, 1, 1, 1], [1, 1, 0, 0]])
+    per_token = losses.terminal_rewards(torch.tensor([2.0, -1.0]), mask)
+    assert torch.equal(per_token, torch.tensor([[0.0, 0, 0, 2], [0, -1, 0, 0]]))
+    g = losses.returns_to_go(per_token) * mask
+    assert torch.equal(g, torch.tensor([[2.0, 2, 2, 2], [-1, -1, 0, 0]]))
+    g_disc = losses.returns_to_go(per_token, gamma=0.5)
+    assert torch.allclose(g_disc[0], torch.tensor([0.25, 0.5, 1.0, 2.0]))
+
+
+def test_returns_to_go_with_intermediate_rewards():
+    g = losses.returns_to_go(torch.tensor([[1.0, 0.0, 2.0]]), gamma=0.9)
+    assert torch.allclose(g, torch.tensor([[1 + 0.9 ** 2 * 2, 0.9 * 2, 2.0]]))
+
+
+def _exact_bandit_gradient(theta, reward):
+    p = torch.softmax(theta, 0)
+    # dJ/dtheta_k = p_k (r_k - sum_j p_j r_j), from d p_j / d theta_k = p_j (1[j=k] - p_k)
+    return p * (reward - (p * reward).sum())
+
+
+@pytest.mark.parametrize("baseline", [None, "leave_one_out"])
+def test_reinforce_matches_the_exact_gradient_within_sampling_error(baseline):
+    torch.manual_seed(0)
+    theta = torch.tensor([0.3, -0.2, 0.8, 0.0], requires_grad=True)
+    reward = torch.tensor([1.0, 0.0, 2.0, -1.0])
+    exact = _exact_bandit_gradient(theta.detach(), reward)
+    n, group = 40000, 4
+    actions = torch.multinomial(torch.softmax(theta.detach(), 0), n, replacement=True)
+    r = reward[actions]
+    if baseline == "leave_one_out":
+        r = r - losses.leave_one_out_baseline(r, group)
+    logp = torch.log_softmax(theta, 0)[actions].unsqueeze(-1)
+    loss = losses.reinforce_loss(logp, r, torch.ones_like(logp))
+    (grad,) = torch.autograd.grad(-loss, theta)
+    # per-sample score-function terms give the standard error of the mean
+    per_sample = torch.stack([torch.autograd.grad(torch.log_softmax(theta, 0)[a], theta)[0] * w
+                              for a, w in zip(actions[:2000], r[:2000])])
+    se = per_sample.std(0) / math.sqrt(n)
+    assert ((grad - exact).abs() < 4 * se + 1e-3).all(), (grad, exact, se)
+
+
+# ---------------------------------------------------------------- KL, entropy, clipping
+
+
+def test_k3_is_non_negative_and_unbiased_for_the_exact_kl():
+    torch.manual_seed(0)
+    p = torch.tensor([0.5, 0.3, 0.15, 0.05])
+    q = torch.tensor([0.25, 0.25, 0.25, 0.25])
+    exact = (p * (p / q).log()).sum()  # KL(p || q), p the policy, q the reference
+    samples = torch.multinomial(p, 200000, replacement=True)
+    k3 = losses.k3_kl(p.log()[samples], q.log()[samples])
+    assert (k3 >= 0).all()
+    se = k3.std() / math.sqrt(len(samples))
+    assert abs(k3.mean() - exact) < 4 * se
+    assert losses.k3_kl(torch.tensor([-1.0]), torch.tensor([-1.0])).item() == 0.0
+
+
+def test_token_entropy_of_uniform_and_one_hot():
+    logits = torch.tensor([[[0.0, 0.0, 0.0, 0.0], [100.0, 0.0, 0.0, 0.0]]])
+    h = losses.token_entropy(logits)
+    assert torch.allclose(h, torch.tensor([[math.log(4), 0.0]]), atol=1e-5)
+
+
+def test_clipped_surrogate_by_hand_with_asymmetric_clip():
+    old = torch.zeros(1, 4)
+    logp = torch.log(torch.tensor([[1.0, 1.5, 0.5, 1.25]]))  # ratios 1, 1.5, 0.5, 1.25
+    adv = torch.tensor([1.0])
+    per_token, clipped = losses.clipped_surrogate(logp, old, adv, eps_low=0.2, eps_high=0.28)
+    assert torch.allclose(per_token, -torch.tensor([[1.0, 1.28, 0.5, 1.25]]))
+    assert clipped.tolist() == [[False, True, False, False]]
+    # negative advantage: the low side clips
+    per_token, clipped = losses.clipped_surrogate(logp, old, -adv, eps_low=0.2, eps_high=0.28)
+    assert torch.allclose(per_token, torch.tensor([[1.0, 1.5, 0.8, 1.25]]))
+    assert clipped.tolist() == [[False, False, True, False]]
+
+
+def test_clipped_tokens_get_no_gradient():
+    logp = torch.log(torch.tensor([[1.5, 1.1]])).requires_grad_()
+    per_token, _ = losses.clipped_surrogate(logp, torch.zeros(1, 2), torch.tensor([1.0]))
+    per_token.sum().backward()
+    assert logp.grad[0, 0] == 0 and logp.grad[0, 1] != 0
+
+
+def test_entropy_weight_inverse_variance_is_capped():
+    equal = torch.ones(8)
+    assert losses.entropy_weight(equal, "inverse_variance", 1e-3, 0.1) == 0.1
+    r = torch.tensor([0.0, 1.0, 0.0, 1.0])  # population variance 0.25
+    assert losses.entropy_weight(r, "inverse_variance", 1e-3, 0.1) == pytest.approx(4e-3)
+    assert losses.entropy_weight(r, "constant", 1e-3, 0.1) == 1e-3
+    assert losses.entropy_weight(r, "none", 1e-3, 0.1) == 0.0
+
+
+# ---------------------------------------------------------------- aggregation
+
+
+PER_TOKEN = torch.tensor([[1.0, 2.0, 3.0, 9.0], [4.0, 9.0, 9.0, 9.0]])
+MASK = torch.tensor([[1, 1, 1, 0], [1, 0, 0, 0]])
+
+
+@pytest.mark.parametrize("loss_type, expected", [
+    ("grpo", ((1 + 2 + 3) / 3 + 4 / 1) / 2),      # mean per sequence, then over sequences
+    ("bnpo", (1 + 2 + 3 + 4) / 4),                 # every real token weighs the same
+    ("dapo", (1 + 2 + 3 + 4) / 4),
+    ("dr_grpo", (1 + 2 + 3 + 4) / (2 * 8)),        # constant: N x max_completion_length
+])
+def test_aggregation_variants_by_hand(loss_type, expected):
+    got = losses.aggregate(PER_TOKEN, MASK, loss_type, max_completion_length=8)
+    assert got.item() == pytest.approx(expected)
+
+
+@pytest.mark.parametrize("loss_type", ["grpo", "bnpo", "dr_grpo"])
+def test_micro_batches_with_global_normalizers_sum_to_the_full_batch(loss_type):
+    full = losses.aggregate(PER_TOKEN, MASK, loss_type, 8)
+    parts = sum(losses.aggregate(PER_TOKEN[i:i + 1], MASK[i:i + 1], loss_type, 8,
+                                 total_sequences=2, total_tokens=int(MASK.sum())) for i in range(2))
+    assert parts.item() == pytest.approx(full.item())
+
+
+def test_unknown_loss_type_is_refused():
+    with pytest.raises(ValueError, match="loss_type"):
+        losses.aggregate(PER_TOKEN, MASK, "mean")
+
+
+def test_grpo_loss_on_policy_equals_reinforce_with_group_baseline():
+    # one update per batch: rho = 1, so the gradient is REINFORCE with advantages as weights
+    torch.manual_seed(0)
+    logp = torch.randn(4, 3, requires_grad=True)
+    mask = torch.tensor([[1, 1, 1], [1, 1, 0], [1, 0, 0], [1, 1, 1]])
+    adv = torch.tensor([1.0, -1.0, 0.5, -0.5])
+    loss, stats = losses.grpo_loss(logp, logp.detach(), adv, mask, loss_type="bnpo")
+    (g1,) = torch.autograd.grad(loss, logp)
+    ref = -(logp * adv[:, None] * mask).sum() / mask.sum()
+    (g2,) = torch.autograd.grad(ref, logp)
+    assert torch.allclose(g1, g2) and stats["clip_fraction"] == 0.0
+
+
+def test_grpo_loss_kl_and_entropy_terms_by_hand():
+    logp = torch.log(torch.tensor([[0.5, 0.25]]))
+    ref = torch.log(torch.tensor([[0.25, 0.25]]))
+    ent = torch.tensor([[1.0, 2.0]])
+    mask = torch.ones(1, 2)
+    loss, stats = losses.grpo_loss(logp, logp, torch.tensor([0.0]), mask, loss_type="grpo",
+                                   ref_logprobs=ref, beta=0.1, entropy=ent, entropy_weight=0.01)
+    kl0 = 0.5 - math.log(0.5) - 1  # ratio ref/pi = 0.5 on token 0, 1 on token 1
+    assert stats["kl"] == pytest.approx(kl0 / 2)
+    assert loss.item() == pytest.approx((0.1 * kl0 - 0.01 * 1.0 - 0.01 * 2.0) / 2)
+    with pytest.raises(ValueError, match="ref_logprobs"):
+        losses.grpo_loss(logp, logp, torch.tensor([0.0]), mask, beta=0.1)

@@ -1,0 +1,70 @@
+"""The rule checker: exact definitions, TRL's calling convention, and arbitrary Unicode."""
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from course_utils import rewards
+
+T = dict(target_chars=[10], target_digit_sum=[6])
+
+
+def test_definition_on_hand_examples():
+    r = rewards.check("  abc 12 3xyz \n", 10, 6)  # stripped: "abc 12 3xyz" is 11 chars
+    assert (r.n_chars, r.digit_sum, r.length_ok, r.digits_ok, r.passed) == (11, 6, False, True, False)
+    r = rewards.check("abc 12 3xy", 10, 6)
+    assert r.passed
+    assert rewards.check("", 1, 0) == rewards.RuleCheck(0, 0, False, True)
+
+
+def test_non_ascii_digits_are_characters_not_digits():
+    # superscript two, Arabic-Indic three, fullwidth seven, Devanagari four: isdigit() is True
+    for char in ["²", "٣", "７", "४"]:
+        assert char.isdigit()
+        r = rewards.check(f"a{char}1", 3, 1)
+        assert r.digit_sum == 1 and r.n_chars == 3 and r.passed
+    assert rewards.digit_sum("é9ö") == 9
+
+
+def test_binary_and_shaped_rewards_with_trl_signature():
+    completions = ["abc 12 3xy", "abc 12 3xyzw", "no digits"]
+    kw = dict(target_chars=[10] * 3, target_digit_sum=[6] * 3)
+    assert rewards.binary_reward(prompts=["p"] * 3, completions=completions, **kw) == [1.0, 0.0, 0.0]
+    shaped = rewards.shaped_reward(prompts=["p"] * 3, completions=completions, **kw)
+    assert shaped[0] == 1.0
+    assert shaped[1] == pytest.approx(0.5 / (1 + 2 / 10) + 0.5)
+    assert shaped[2] == pytest.approx(0.5 / (1 + 1 / 10) + 0.5 / (1 + 6 / 6))  # 9 chars, sum 0 of 6
+    # farther is always worse, however far: there is signal even for very long completions
+    far = rewards.shaped_reward(["p"] * 2, ["x" * 50, "x" * 90], target_chars=[10] * 2,
+                                target_digit_sum=[0] * 2)
+    assert 0 < far[1] < far[0] < 1
+    assert rewards.length_reward(["p"] * 3, completions, **kw) == [1.0, 0.0, 0.0]
+    assert rewards.digit_sum_reward(["p"] * 3, completions, **kw) == [1.0, 1.0, 0.0]
+
+
+def test_conversational_completions_as_trl_passes_them():
+    chat = [[{"role": "assistant", "content": " abc 12 3xy "}]]
+    assert rewards.binary_reward(prompts=[[{"role": "user", "content": "q"}]], completions=chat, **T) == [1.0]
+
+
+def test_missing_or_ragged_targets_are_clear_errors():
+    with pytest.raises(KeyError, match="target_digit_sum"):
+        rewards.binary_reward(["p"], ["x"], target_chars=[1])
+    with pytest.raises(ValueError, match="2 values for 1 completions"):
+        rewards.binary_reward(["p"], ["x"], target_chars=[1, 2], target_digit_sum=[0])
+    with pytest.raises(TypeError, match="completion must be"):
+        rewards.binary_reward(["p"], [42], **T)
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=st.text(), target_chars=st.integers(1, 200), target_sum=st.integers(0, 300))
+def test_rewards_never_raise_on_arbitrary_unicode(text, target_chars, target_sum):
+    kw = dict(target_chars=[target_chars], target_digit_sum=[target_sum])
+    b = rewards.binary_reward(["p"], [text], **kw)[0]
+    s = rewards.shaped_reward(["p"], [text], **kw)[0]
+    assert b in (0.0, 1.0) and 0.0 < s <= 1.0 and math.isfinite(s)
+    assert (s == 1.0) == (b == 1.0)
+    stripped = text.strip()
+    assert rewards.check(text, target_chars, target_sum).n_chars == len(stripped)
+    assert rewards.digit_sum(text) == sum(int(c) for c in stripped if c in "0123456789")

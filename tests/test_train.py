@@ -1,0 +1,108 @@
+"""The training loop and the main job, end to end on the tiny model (seconds)."""
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from course_utils import checkpoint, train
+from course_utils.config import load_config
+from course_utils.data import Prompt
+
+
+def _params(path):
+    from safetensors.torch import load_file
+    return load_file(str(path / "checkpoint" / "model.safetensors"))
+
+
+def test_main_job_smoke_writes_a_complete_run(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "course_utils.train", "--preset", "smoke",
+                           "--out_dir", str(out), "--no-progress"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for name in ("config.json", "metrics.jsonl", "curves.png", "report.md", "summary.json",
+                 "checkpoint/model.safetensors", "checkpoint/trainer_state.pt"):
+        assert (out / name).exists(), name
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [1, 2, 3]
+    for key in ("reward_mean", "reward_std", "pass_length", "pass_digits", "pass_both", "adv_std",
+                "entropy", "entropy_weight", "clip_fraction", "completion_tokens",
+                "zero_std_frac", "step_time", "tokens_per_s"):
+        assert key in records[0]
+    assert records[0]["adv_std"] > 0  # the smoke preset must exercise a real update
+    assert "| mean reward |" in proc.stdout and "before (sampled)" in proc.stdout
+
+
+def test_bad_config_fails_fast_with_the_field_named():
+    proc = subprocess.run([sys.executable, "-m", "course_utils.train", "--preset", "smoke",
+                           "--group_size", "1"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0
+    assert "group_size=1 is invalid" in proc.stderr and "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "course_utils.train", "--preset", "smoke",
+                           "--lr", "fast"], capture_output=True, text=True, timeout=60)
+    assert "--lr 'fast' is not a valid float" in proc.stderr
+
+
+def test_resume_matches_an_uninterrupted_run_bitwise(tmp_path):
+    full = load_config("smoke", out_dir=str(tmp_path / "full"), max_steps=4, save_every=1)
+    train.train(full, progress=False)
+    part = load_config("smoke", out_dir=str(tmp_path / "part"), max_steps=2, save_every=1)
+    train.train(part, progress=False)
+    resumed = load_config("smoke", out_dir=str(tmp_path / "part"), max_steps=4, save_every=1)
+    train.train(resumed, resume=True, progress=False)
+    a, b = _params(tmp_path / "full"), _params(tmp_path / "part")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    strip = lambda rs: [{k: v for k, v in r.items() if "time" not in k and k != "tokens_per_s"} for r in rs]
+    ra = checkpoint.MetricsLog(tmp_path / "full" / "metrics.jsonl").read()
+    rb = checkpoint.MetricsLog(tmp_path / "part" / "metrics.jsonl").read()
+    assert strip(ra) == strip(rb) and [r["step"] for r in rb] == [1, 2, 3, 4]
+
+
+def test_resume_refuses_a_checkpoint_from_another_config(tmp_path):
+    train.train(load_config("smoke", out_dir=str(tmp_path), max_steps=1), progress=False)
+    with pytest.raises(checkpoint.CheckpointError, match="group_size: checkpoint 4 vs now 2"):
+        train.train(load_config("smoke", out_dir=str(tmp_path), group_size=2), resume=True, progress=False)
+
+
+@pytest.mark.parametrize("loss_type", ["grpo", "dapo", "dr_grpo"])
+def test_gradient_accumulation_gives_the_full_batch_gradient(loss_type):
+    grads = []
+    for accum in (1, 2):
+        cfg = load_config("smoke", grad_accum=accum, loss_type=loss_type, max_steps=1)
+        policy = train.setup(cfg)
+        policy.optimizer.step = lambda *a, **k: None  # keep the gradient, skip the update
+        prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5)
+                   for t in ("One two three", "Four five six seven eight")]
+        metrics = train.grpo_step(policy, prompts)
+        assert metrics["adv_std"] > 0
+        grads.append(torch.cat([p.grad.flatten() for p in policy.model.parameters()]))
+    assert grads[0].abs().max() > 0
+    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-8)
+
+
+def test_a_broken_reward_names_the_completion(monkeypatch):
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", lambda prompts, completions, **kw: [float("nan")] * len(completions))
+    p = Prompt(text="x", snippet="x", target_chars=3, target_digit_sum=1)
+    with pytest.raises(train.RewardError, match="returned nan for the completion 'abc'"):
+        train.score([p], ["abc"], "shaped")
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", lambda prompts, completions, **kw: [1.0])
+    with pytest.raises(train.RewardError, match="returned 1 values for 2 completions"):
+        train.score([p, p], ["a", "b"], "shaped")
+
+
+def test_embedded_smollm2_loads_offline_and_stops_at_eos():
+    from course_utils import models, rollout
+    tok = models.load_tokenizer("smollm2-135m-instruct")
+    model = models.load_policy("smollm2-135m-instruct")
+    assert tok.pad_token_id == tok.eos_token_id == 2  # the pad == EOS trap is real here
+    assert sum(p.numel() for p in model.parameters()) == pytest.approx(134.5e6, rel=0.01)
+    prompt = tok.apply_chat_template([{"role": "user", "content": "Say hi."}], tokenize=False,
+                                     add_generation_prompt=True)
+    ro = rollout.rollout(model, tok, [prompt], group_size=2, max_new_tokens=24, greedy=True,
+                         eos_ids=models.eos_token_ids(model, tok))
+    assert not ro.truncated.any()  # it answered and stopped
+    last = ro.lengths - 1
+    assert (ro.completion_ids[torch.arange(2), last] == 2).all()  # the EOS is inside the mask
+    assert ro.texts[0] and "<|im_end|>" not in ro.texts[0]
