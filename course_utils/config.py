@@ -206,7 +206,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "cpu": dict(model="smollm2-135m-instruct", prompt_source="offline", prompt_tokens=32,
                 target_chars=32, digit_sum_min=3, digit_sum_max=12, reward="shaped",
                 prompts_per_step=4, group_size=8, max_new_tokens=32, lr=3e-5,
-                train_prompts=120, epochs=1, max_steps=30, eval_prompts=32, save_every=10,
+                train_prompts=160, epochs=1, eval_prompts=64, save_every=10,
                 out_dir="runs/cpu"),
     # Seconds, for CI: a random-weight tiny model, a handful of everything.
     "smoke": dict(model="tiny-qwen2", prompt_source="offline", prompt_tokens=16, target_chars=48,

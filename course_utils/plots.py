@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+# Panels drawn only when their metric is switched on (not all zeros): the entropy weight with an
+# entropy bonus, the KL with a reference model.
+OPTIONAL = {"entropy_weight", "kl"}
 PANELS = [  # (title, [(metric key, label)])
     ("reward", [("reward_mean", "mean reward")]),
     ("pass rates", [("pass_length", "length"), ("pass_digits", "digit sum"), ("pass_both", "both")]),
@@ -26,8 +29,11 @@ def plot_metrics(records: list[dict], path: Path) -> Path | None:
     matplotlib.use("Agg")  # no display needed; notebooks show the saved PNG
     import matplotlib.pyplot as plt
 
-    panels = [(t, [(k, lbl) for k, lbl in series if any(k in r for r in records)])
-              for t, series in PANELS]
+    def logged(key: str) -> bool:
+        values = [r[key] for r in records if r.get(key) is not None]
+        return bool(values) and (key not in OPTIONAL or any(v != 0 for v in values))
+
+    panels = [(t, [(k, lbl) for k, lbl in series if logged(k)]) for t, series in PANELS]
     panels = [(t, s) for t, s in panels if s]
     cols = 3
     rows = -(-len(panels) // cols)

@@ -135,9 +135,12 @@ def rollout(model, tokenizer, prompts: list[str], *, group_size: int, max_new_to
 
 def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor,
                         completion_ids: torch.Tensor, completion_mask: torch.Tensor, *,
-                        temperature: float = 1.0, with_entropy: bool = False, group_size: int = 1):
+                        temperature: float = 1.0, with_entropy: bool = False,
+                        entropy_grad: bool = False, group_size: int = 1):
     """log pi_theta(o_t | q, o_<t) for every completion token (with autograd), and optionally
-    the per-token entropy. Logits are computed for completion positions only.
+    the per-token entropy (differentiable only if ``entropy_grad``: when the entropy is just
+    logged, keeping its graph would hold several [N, T, vocab] tensors for nothing). Logits are
+    computed for completion positions only.
 
     The same temperature as in sampling is applied, so on-policy the ratio pi_theta / pi_old
     starts at exactly 1 (up to floating-point noise).
@@ -163,7 +166,8 @@ def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tens
     logprobs = logits.gather(-1, completion_ids.unsqueeze(-1)).squeeze(-1) - logits.logsumexp(-1)
     entropy = None
     if with_entropy:
-        entropy = token_entropy(logits)
+        with torch.set_grad_enabled(entropy_grad and torch.is_grad_enabled()):
+            entropy = token_entropy(logits)
     return logprobs, entropy
 
 

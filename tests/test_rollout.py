@@ -95,7 +95,8 @@ def test_shared_prompt_forward_matches_the_full_forward_in_value_and_gradient(ti
     for G in (1, 3):
         tiny_model.zero_grad()
         lp, ent = R.completion_logprobs(tiny_model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
-                                        ro.completion_mask, with_entropy=True, group_size=G)
+                                        ro.completion_mask, with_entropy=True, entropy_grad=True,
+                                        group_size=G)
         ((lp * weights + ent) * ro.completion_mask).sum().backward()
         grad = torch.cat([p.grad.flatten() for p in tiny_model.parameters()])
         results.append((lp.detach() * ro.completion_mask, grad))

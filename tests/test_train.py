@@ -106,3 +106,19 @@ def test_embedded_smollm2_loads_offline_and_stops_at_eos():
     last = ro.lengths - 1
     assert (ro.completion_ids[torch.arange(2), last] == 2).all()  # the EOS is inside the mask
     assert ro.texts[0] and "<|im_end|>" not in ro.texts[0]
+
+
+@pytest.mark.parametrize("bonus, expect_gradient", [("none", False), ("inverse_variance", True)])
+def test_equal_rewards_give_no_gradient_unless_the_entropy_bonus_is_on(monkeypatch, bonus, expect_gradient):
+    # every completion gets the same reward: zero-std groups, zero advantages; only the entropy
+    # bonus (a course extension, at its cap because the reward variance is 0) can move the policy
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", lambda prompts, completions, **kw: [0.5] * len(completions))
+    cfg = load_config("smoke", entropy_bonus=bonus, entropy_coef=1e-3 if bonus != "none" else 0.0)
+    policy = train.setup(cfg)
+    policy.optimizer.step = lambda *a, **k: None
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    metrics = train.grpo_step(policy, prompts)
+    assert metrics["zero_std_frac"] == 1.0 and metrics["adv_abs_mean"] == 0.0
+    assert metrics["entropy_weight"] == (cfg.entropy_weight_max if expect_gradient else 0.0)
+    norm = sum(float(p.grad.norm()) for p in policy.model.parameters() if p.grad is not None)
+    assert (norm > 0) == expect_gradient
