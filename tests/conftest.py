@@ -1,7 +1,3 @@
-import os
-
-os.environ.setdefault("HF_HUB_OFFLINE", "1")  # tests never reach a model hub (CI has none)
-
 import pytest
 import torch
 

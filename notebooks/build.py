@@ -1,0 +1,135 @@
+"""Build the lesson notebooks from their one source of truth.
+
+    python notebooks/build.py           # regenerate every notebook
+    python notebooks/build.py --check   # exit 1 if any generated file is out of date (CI)
+
+Each lesson is written once, in ``notebooks/src/NN_name.py`` (jupytext py:percent), solutions
+included. This script writes two flavours, each as a paired .py (py:percent) and .ipynb:
+
+* the learner flavour, ``notebooks/NN_name.{py,ipynb}``: every block between
+  ``# BEGIN SOLUTION`` and ``# END SOLUTION`` becomes ``raise NotImplementedError``;
+* the solution flavour, ``notebooks/solutions/NN_name.{py,ipynb}``: the source as written.
+
+Placeholders filled here, so the repository URL is written in exactly one place
+(``course_utils.GITHUB_REPO``): ``{{COLAB_BADGE}}``, ``{{SETUP}}`` (the Colab install cell's code)
+and ``{{SOLUTIONS_NOTE}}``.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import jupytext
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+from course_utils import GITHUB_REPO  # noqa: E402
+
+SRC, SOLUTIONS = HERE / "src", HERE / "solutions"
+BEGIN, END = "# BEGIN SOLUTION", "# END SOLUTION"
+KERNELSPEC = {"name": "python3", "display_name": "Python 3", "language": "python"}
+
+
+def colab_url(relative_path: str) -> str:
+    return f"https://colab.research.google.com/github/{GITHUB_REPO}/blob/main/{relative_path}"
+
+
+def setup_code() -> str:
+    return (
+        "# Set-up. In Colab: install course_utils from the course repository. Colab's own torch is\n"
+        "# kept (course_utils only asks for torch>=2.2). Anywhere else this cell does nothing: there\n"
+        "# you installed the course with the README's command.\n"
+        "import sys\n"
+        "\n"
+        "if \"google.colab\" in sys.modules:\n"
+        "    import subprocess\n"
+        "\n"
+        "    subprocess.run([sys.executable, \"-m\", \"pip\", \"install\", \"-q\",\n"
+        f"                    \"course-utils @ git+https://github.com/{GITHUB_REPO}.git\"], check=True)"
+    )
+
+
+def strip_solutions(text: str) -> str:
+    """Replace each solution block with ``raise NotImplementedError`` at the block's indent."""
+    out, inside = [], False
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped == BEGIN:
+            if inside:
+                raise ValueError("nested # BEGIN SOLUTION")
+            inside = True
+            indent = line[: len(line) - len(line.lstrip())]
+            out.append(f"{indent}raise NotImplementedError  # your code here")
+        elif stripped == END:
+            if not inside:
+                raise ValueError("# END SOLUTION without # BEGIN SOLUTION")
+            inside = False
+        elif not inside:
+            out.append(line)
+    if inside:
+        raise ValueError("# BEGIN SOLUTION without # END SOLUTION")
+    return "\n".join(out) + "\n"
+
+
+def keep_solutions(text: str) -> str:
+    return "\n".join(l for l in text.splitlines() if l.strip() not in (BEGIN, END)) + "\n"
+
+
+def render(source: Path, learner: bool) -> dict[str, str]:
+    """Both files (.py and .ipynb) of one flavour of one lesson, as text."""
+    name = source.stem
+    path = f"notebooks/{name}.ipynb" if learner else f"notebooks/solutions/{name}.ipynb"
+    badge = f"[![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)]({colab_url(path)})"
+    note = (f"*Stuck on an exercise? The worked solutions are in "
+            f"[solutions/{name}.ipynb]({colab_url(f'notebooks/solutions/{name}.ipynb')}); try "
+            f"first, the checkers tell you what is wrong.*" if learner else
+            "*This is the solution flavour of the lesson: every exercise is filled in.*")
+    text = source.read_text()
+    text = strip_solutions(text) if learner else keep_solutions(text)
+    text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
+            .replace("{{SETUP}}", setup_code()))
+    leftover = re.findall(r"\{\{[A-Z_]+\}\}", text)
+    if leftover:
+        raise ValueError(f"{source.name}: unknown placeholder(s) {leftover}")
+    nb = jupytext.reads(text, fmt="py:percent")
+    for i, cell in enumerate(nb.cells):
+        cell["id"] = f"cell-{i:03d}"  # deterministic ids, so rebuilding changes nothing
+    nb.metadata["kernelspec"] = KERNELSPEC
+    nb.metadata["jupytext"] = {"formats": "ipynb,py:percent"}
+    nb.metadata["colab"] = {"provenance": [], "toc_visible": True}
+    return {".py": jupytext.writes(nb, fmt="py:percent"), ".ipynb": jupytext.writes(nb, fmt="ipynb")}
+
+
+def targets() -> dict[Path, str]:
+    files = {}
+    for source in sorted(SRC.glob("[0-9][0-9]_*.py")):
+        for learner, folder in ((True, HERE), (False, SOLUTIONS)):
+            for suffix, content in render(source, learner).items():
+                files[folder / f"{source.stem}{suffix}"] = content
+    return files
+
+
+def stale() -> list[Path]:
+    """Generated files that are missing or differ from what the sources produce."""
+    return [p for p, content in targets().items() if not p.exists() or p.read_text() != content]
+
+
+def main(argv: list[str]) -> int:
+    if "--check" in argv:
+        bad = stale()
+        for p in bad:
+            print(f"out of date: {p.relative_to(HERE.parent)}")
+        if bad:
+            print("Run `python notebooks/build.py` and commit the result.")
+        return 1 if bad else 0
+    SOLUTIONS.mkdir(exist_ok=True)
+    for path, content in targets().items():
+        path.write_text(content)
+        print(f"wrote {path.relative_to(HERE.parent)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
