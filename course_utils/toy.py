@@ -76,9 +76,13 @@ class CharPolicy(nn.Module):
         self.gru = nn.GRU(hidden, hidden, batch_first=True)
         self.head = nn.Linear(hidden, VOCAB_SIZE)
 
-    def _logits(self, prompts: torch.Tensor, inputs: torch.Tensor) -> torch.Tensor:
+    def _initial_state(self, prompts: torch.Tensor) -> torch.Tensor:
+        """The GRU's starting state encodes the prompt (target length, target digit sum)."""
         h0 = torch.tanh(self.length_embedding(prompts[:, 0]) + self.sum_embedding(prompts[:, 1]))
-        out, _ = self.gru(self.token_embedding(inputs), h0.unsqueeze(0).contiguous())
+        return h0.unsqueeze(0).contiguous()
+
+    def _logits(self, prompts: torch.Tensor, inputs: torch.Tensor) -> torch.Tensor:
+        out, _ = self.gru(self.token_embedding(inputs), self._initial_state(prompts))
         return self.head(out)
 
     @torch.no_grad()
@@ -86,7 +90,7 @@ class CharPolicy(nn.Module):
                greedy: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Sample one sequence per prompt. Returns (tokens [N, T], completion mask [N, T])."""
         n = prompts.shape[0]
-        h = torch.tanh(self.length_embedding(prompts[:, 0]) + self.sum_embedding(prompts[:, 1])).unsqueeze(0).contiguous()
+        h = self._initial_state(prompts)
         token = torch.full((n,), VOCAB_SIZE)  # start token
         tokens = []
         for _ in range(self.max_len):

@@ -209,9 +209,14 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
 def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
     """Load tokenizer, policy (and reference model if kl_coef > 0), optimizer and scheduler."""
     from accelerate import Accelerator
+    from accelerate.state import AcceleratorState
 
     torch.manual_seed(cfg.seed)
     mixed = {"fp32": "no", "fp16": "fp16", "bf16": "bf16"}[cfg.precision]
+    if AcceleratorState._shared_state.get("_mixed_precision", mixed) != mixed:
+        # accelerate keeps one configuration per process; without this, a notebook that trains
+        # again with another precision would be told to restart its runtime.
+        AcceleratorState._reset_state()
     accelerator = Accelerator(mixed_precision=mixed)
     tokenizer = models.load_tokenizer(cfg.model)
     model = (models.load_policy(str(init_from)) if init_from else

@@ -37,18 +37,31 @@ def test_committed_notebooks_carry_no_outputs():
                 assert cell.outputs == [] and cell.execution_count is None, path.name
 
 
+REPO_PATTERN = r"github(?:\.com)?/([\w.-]+/[\w.-]+?)(?:\.git|/blob|[\"')\s\\])"
+
+
+def test_readme_badges_use_the_one_repository():
+    text = (ROOT / "README.md").read_text()
+    assert set(re.findall(REPO_PATTERN, text)) == {GITHUB_REPO}
+    for name in LESSONS:
+        assert f"colab.research.google.com/github/{GITHUB_REPO}/blob/main/notebooks/{name}.ipynb" in text
+
+
 def test_every_link_and_install_uses_the_one_repository():
     for path in ALL_IPYNB:
         text = path.read_text()
-        repos = set(re.findall(r"github(?:\.com)?/([\w.-]+/[\w.-]+?)(?:\.git|/blob|[\"')\s\\])", text))
+        repos = set(re.findall(REPO_PATTERN, text))
         assert repos == {GITHUB_REPO}, (path.name, repos)
         assert f"colab.research.google.com/github/{GITHUB_REPO}/blob/main/notebooks/" in text
         assert f"git+https://github.com/{GITHUB_REPO}.git" in text  # the Colab set-up cell
 
 
-def test_setup_cell_never_touches_torch():
+def test_setup_cell_installs_only_in_colab_and_never_touches_torch():
     code = build.setup_code()
-    assert "google.colab" in code and "torch" not in code.split("kept")[1].replace("torch>=2.2", "")
+    assert 'if "google.colab" in sys.modules:' in code
+    install = code[code.index("subprocess.run"):]
+    assert "torch" not in install and "--upgrade" not in install and "-U" not in install
+    assert "requirements.txt" not in install  # its pinned CPU torch must never reach Colab
 
 
 def test_learner_flavour_has_no_solutions():

@@ -122,3 +122,25 @@ def test_equal_rewards_give_no_gradient_unless_the_entropy_bonus_is_on(monkeypat
     assert metrics["entropy_weight"] == (cfg.entropy_weight_max if expect_gradient else 0.0)
     norm = sum(float(p.grad.norm()) for p in policy.model.parameters() if p.grad is not None)
     assert (norm > 0) == expect_gradient
+
+
+def test_kl_to_the_reference_starts_at_zero_and_several_updates_clip():
+    cfg = load_config("smoke", kl_coef=0.1, updates_per_batch=3, lr=1e-2, grad_accum=1)
+    policy = train.setup(cfg)
+    assert policy.ref_model is not None
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    metrics = train.grpo_step(policy, prompts)
+    assert metrics["kl"] > 0            # averaged over 3 updates: after the first, the policy moved
+    assert metrics["clip_fraction"] > 0  # and the later updates hit the clip
+    no_ref = train.setup(load_config("smoke"))
+    assert no_ref.ref_model is None     # beta = 0: no reference model is loaded at all
+    first = train.grpo_step(train.setup(load_config("smoke", kl_coef=0.1)), prompts)
+    assert first["kl"] == pytest.approx(0.0, abs=1e-6)  # one update: measured before it, pi == pi_ref
+
+
+def test_bf16_autocast_runs_on_the_cpu(tmp_path):
+    summary = train.train(load_config("smoke", precision="bf16", max_steps=1, out_dir=str(tmp_path)),
+                          progress=False)
+    assert "after" in summary
+    for p in torch.load(tmp_path / "checkpoint" / "trainer_state.pt", weights_only=True)["optimizer"]["state"].values():
+        assert p["exp_avg"].dtype == torch.float32  # fp32 master weights and optimizer state
