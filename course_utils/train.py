@@ -174,8 +174,9 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
         if not step_ok:
             policy.counters["nonfinite_skipped"] += 1
             policy.optimizer.zero_grad(set_to_none=True)
-            print(f"[course_utils] non-finite loss at this step: update skipped "
-                  f"({policy.counters['nonfinite_skipped']} so far)")
+            print(f"[course_utils] non-finite loss (NaN or inf) at this step: update skipped, "
+                  f"{policy.counters['nonfinite_skipped']} so far. With fp16 this usually means the "
+                  f"forward pass overflowed; if it repeats, use precision='fp32' or a lower lr.")
             continue
         grad_norm = float(acc.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
         if not math.isfinite(grad_norm):

@@ -144,3 +144,23 @@ def test_bf16_autocast_runs_on_the_cpu(tmp_path):
     assert "after" in summary
     for p in torch.load(tmp_path / "checkpoint" / "trainer_state.pt", weights_only=True)["optimizer"]["state"].values():
         assert p["exp_avg"].dtype == torch.float32  # fp32 master weights and optimizer state
+
+
+def test_a_non_finite_loss_skips_the_update_and_is_counted(monkeypatch, capsys):
+    # what fp16 overflow in the forward pass looks like from the loop: NaN log-probabilities
+    policy = train.setup(load_config("smoke"))
+    before = [p.detach().clone() for p in policy.model.parameters()]
+    real = train.completion_logprobs
+
+    def overflowing(*args, **kwargs):
+        logprobs, entropy = real(*args, **kwargs)
+        return logprobs * float("nan"), entropy
+
+    monkeypatch.setattr(train, "completion_logprobs", overflowing)
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    metrics = train.grpo_step(policy, prompts)
+    assert metrics["nonfinite_skipped"] == 1
+    assert "non-finite loss" in capsys.readouterr().out
+    after = list(policy.model.parameters())
+    assert all(torch.equal(a, b) for a, b in zip(before, after))
+    assert all(torch.isfinite(p).all() for p in after)
