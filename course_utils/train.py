@@ -116,6 +116,15 @@ class Policy:
     counters: dict = field(default_factory=lambda: {"nonfinite_skipped": 0})
 
 
+def _skip_update(policy: Policy, what: str) -> None:
+    """Drop this update's gradients instead of training on NaN or inf, and say so."""
+    policy.counters["nonfinite_skipped"] += 1
+    policy.optimizer.zero_grad(set_to_none=True)
+    print(f"[course_utils] non-finite {what} (NaN or inf): update skipped, "
+          f"{policy.counters['nonfinite_skipped']} so far. With fp16 this usually means the "
+          f"forward pass overflowed; if it repeats, use precision='fp32' or a lower lr.")
+
+
 def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
     """Sample, score, and update once on ``prompts``. Returns the step's metrics."""
     cfg, model, acc = policy.cfg, policy.model, policy.accelerator
@@ -134,7 +143,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
     ent_weight = losses.entropy_weight(s["rewards"], cfg.entropy_bonus, cfg.entropy_coef,
                                        cfg.entropy_weight_max)
     mask = ro.completion_mask
-    n_seq, n_tok, T = mask.shape[0], int(mask.sum()), mask.shape[1]
+    n_seq, n_tok = mask.shape[0], int(mask.sum())
 
     ref_logprobs = None
     if cfg.kl_coef > 0:
@@ -145,7 +154,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
     rows_per_micro = n_seq // cfg.grad_accum  # whole groups per micro-batch (checked by validate)
     stats_sum: dict[str, float] = {}
     loss_total, grad_norm = 0.0, float("nan")
-    for update in range(cfg.updates_per_batch):
+    for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
         step_ok = True
         for start in range(0, n_seq, rows_per_micro):
@@ -172,18 +181,17 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
             for k, v in stats.items():  # token-weighted average over micro-batches
                 stats_sum[k] = stats_sum.get(k, 0.0) + v * float(mask[rows].sum()) / n_tok / cfg.updates_per_batch
         if not step_ok:
-            policy.counters["nonfinite_skipped"] += 1
-            policy.optimizer.zero_grad(set_to_none=True)
-            print(f"[course_utils] non-finite loss (NaN or inf) at this step: update skipped, "
-                  f"{policy.counters['nonfinite_skipped']} so far. With fp16 this usually means the "
-                  f"forward pass overflowed; if it repeats, use precision='fp32' or a lower lr.")
+            _skip_update(policy, "loss")
             continue
         grad_norm = float(acc.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
-        if not math.isfinite(grad_norm):
-            policy.counters["nonfinite_skipped"] += 1
-            policy.optimizer.zero_grad(set_to_none=True)
+        if not math.isfinite(grad_norm) and cfg.precision != "fp16":
+            _skip_update(policy, "gradient")
             continue
+        # With fp16, accelerate's gradient scaler skips a step whose gradients overflowed and
+        # lowers its scale (it must see the step to do so); count those skips too.
         policy.optimizer.step()
+        if acc.optimizer_step_was_skipped:
+            policy.counters["nonfinite_skipped"] += 1
     policy.scheduler.step()
     t_end = time.perf_counter()
     lengths = mask.sum(-1).float()

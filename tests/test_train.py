@@ -164,3 +164,13 @@ def test_a_non_finite_loss_skips_the_update_and_is_counted(monkeypatch, capsys):
     after = list(policy.model.parameters())
     assert all(torch.equal(a, b) for a, b in zip(before, after))
     assert all(torch.isfinite(p).all() for p in after)
+
+
+def test_an_infinite_gradient_norm_skips_the_update(capsys):
+    policy = train.setup(load_config("smoke"))
+    before = [p.detach().clone() for p in policy.model.parameters()]
+    policy.accelerator.clip_grad_norm_ = lambda *a, **k: torch.tensor(float("inf"))
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    assert train.grpo_step(policy, prompts)["nonfinite_skipped"] == 1
+    assert "non-finite gradient" in capsys.readouterr().out
+    assert all(torch.equal(a, b) for a, b in zip(before, policy.model.parameters()))
