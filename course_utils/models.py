@@ -131,7 +131,12 @@ def load_policy(name: str, dtype: torch.dtype = torch.float32, seed: int = 0):
         model.generation_config.eos_token_id = tokenizer.eos_token_id
     else:
         model = AutoModelForCausalLM.from_pretrained(name, dtype=dtype, trust_remote_code=False)
-    # Dropout would make the training forward a different distribution from the one sampled.
+    # Dropout would make the training forward a different distribution from the one sampled
+    # (gpt2 has 0.1): switch it off, so train mode (needed for gradient checkpointing) and eval
+    # mode compute the same function.
+    for module in model.modules():
+        if isinstance(module, torch.nn.Dropout):
+            module.p = 0.0
     return model.eval()
 
 

@@ -153,8 +153,8 @@ def format_plan(arch: Architecture, cfg, prompt_len: int, completion_len: int,
     total = peak_bytes(mem)
     lines = [f"Memory plan on {device.name} ({device.memory_gib:.1f} GiB usable):"]
     lines += [f"  {name:32s} {value / GiB:6.2f} GiB" for name, value in mem.items() if value]
-    verdict = "fits" if total <= device.memory_gib * GiB else "DOES NOT FIT: raise grad_accum, " \
-        "enable gradient_checkpointing, or use optimizer='adamw_8bit'"
+    verdict = "fits" if total <= device.memory_gib * GiB else "DOES NOT FIT: raise grad_accum " \
+        "or enable gradient_checkpointing"
     lines.append(f"  {'peak (persistent + larger transient)':32s} {total / GiB:6.2f} GiB -> {verdict}")
     t = time_plan(arch, cfg, prompt_len, completion_len, device)
     lines.append(f"Time plan: generation {t['generation s/step']:.1f} s + training "

@@ -152,6 +152,9 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
                                                   ro.completion_ids, mask, temperature=cfg.temperature)
 
     rows_per_micro = n_seq // cfg.grad_accum  # whole groups per micro-batch (checked by validate)
+    # transformers checkpoints activations only in train mode; sampling stays in eval mode (with
+    # checkpointing on, train mode would switch off the KV cache). Dropout is off either way.
+    model.train(cfg.gradient_checkpointing)
     stats_sum: dict[str, float] = {}
     loss_total, grad_norm = 0.0, float("nan")
     for _ in range(cfg.updates_per_batch):
@@ -192,6 +195,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
         policy.optimizer.step()
         if acc.optimizer_step_was_skipped:
             policy.counters["nonfinite_skipped"] += 1
+    model.eval()
     policy.scheduler.step()
     t_end = time.perf_counter()
     lengths = mask.sum(-1).float()
@@ -232,7 +236,6 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
              models.load_policy(cfg.model, seed=cfg.seed))
     if cfg.gradient_checkpointing:
         model.gradient_checkpointing_enable()
-        model.config.use_cache = False  # the sampler passes use_cache=True explicitly
     ref_model = None
     if cfg.kl_coef > 0:  # no reference model at all when beta = 0: it would only cost memory
         ref_model = models.load_policy(cfg.model, seed=cfg.seed).to(accelerator.device)

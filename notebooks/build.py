@@ -11,8 +11,9 @@ included. This script writes two flavours, each as a paired .py (py:percent) and
 * the solution flavour, ``notebooks/solutions/NN_name.{py,ipynb}``: the source as written.
 
 Placeholders filled here, so the repository URL is written in exactly one place
-(``course_utils.GITHUB_REPO``): ``{{COLAB_BADGE}}``, ``{{SETUP}}`` (the Colab install cell's code)
-and ``{{SOLUTIONS_NOTE}}``.
+(``course_utils.GITHUB_REPO``): ``{{COLAB_BADGE}}``, ``{{SETUP}}`` (the Colab install cell's code),
+``{{SOLUTIONS_NOTE}}``, and ``{{CPU_RESULTS}}`` (the saved reports of the real CPU runs in
+``notebooks/results/``, as markdown with their curves).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 from course_utils import GITHUB_REPO  # noqa: E402
 
-SRC, SOLUTIONS = HERE / "src", HERE / "solutions"
+SRC, SOLUTIONS, RESULTS = HERE / "src", HERE / "solutions", HERE / "results"
 BEGIN, END = "# BEGIN SOLUTION", "# END SOLUTION"
 KERNELSPEC = {"name": "python3", "display_name": "Python 3", "language": "python"}
 
@@ -49,6 +50,25 @@ def setup_code() -> str:
         "    subprocess.run([sys.executable, \"-m\", \"pip\", \"install\", \"-q\",\n"
         f"                    \"course-utils @ git+https://github.com/{GITHUB_REPO}.git\"], check=True)"
     )
+
+
+def cpu_results_markdown() -> str:
+    """The saved CPU runs' before/after reports, with their curves (linked for Colab)."""
+    parts = []
+    for run in sorted(p for p in RESULTS.iterdir() if (p / "report.md").exists()):
+        # two levels deeper, so the reports' headings sit under the lesson's section
+        report = re.sub(r"^(#+) ", lambda m: "#" * (len(m.group(1)) + 2) + " ",
+                        (run / "report.md").read_text(), flags=re.M)
+        image = f"https://raw.githubusercontent.com/{GITHUB_REPO}/main/notebooks/results/{run.name}/curves.png"
+        parts.append(f"**Run `{run.name}`** (files in `notebooks/results/{run.name}/`)\n\n{report}\n"
+                     f"![training curves of {run.name}]({image})\n")
+    return "\n".join(parts)
+
+
+def fill_markdown(text: str, key: str, content: str) -> str:
+    """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
+    block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
+    return text.replace(f"# {{{{{key}}}}}", block)
 
 
 def strip_solutions(text: str) -> str:
@@ -82,11 +102,17 @@ def render(source: Path, learner: bool) -> dict[str, str]:
     name = source.stem
     path = f"notebooks/{name}.ipynb" if learner else f"notebooks/solutions/{name}.ipynb"
     badge = f"[![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)]({colab_url(path)})"
-    note = (f"*Stuck on an exercise? The worked solutions are in "
-            f"[solutions/{name}.ipynb]({colab_url(f'notebooks/solutions/{name}.ipynb')}); try "
-            f"first, the checkers tell you what is wrong.*" if learner else
-            "*This is the solution flavour of the lesson: every exercise is filled in.*")
     text = source.read_text()
+    if BEGIN not in text:
+        note = "*This lesson has no exercises: run it, change the configuration, read the curves.*"
+    elif learner:
+        note = (f"*Stuck on an exercise? The worked solutions are in "
+                f"[solutions/{name}.ipynb]({colab_url(f'notebooks/solutions/{name}.ipynb')}); try "
+                f"first, the checkers tell you what is wrong.*")
+    else:
+        note = "*This is the solution flavour of the lesson: every exercise is filled in.*"
+    if "{{CPU_RESULTS}}" in text:
+        text = fill_markdown(text, "CPU_RESULTS", cpu_results_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))

@@ -17,11 +17,12 @@ sys.path.insert(0, str(NOTEBOOKS))
 import build  # noqa: E402
 
 LESSONS = sorted(p.stem for p in (NOTEBOOKS / "src").glob("[0-9][0-9]_*.py"))
+EXERCISE_LESSONS = [n for n in LESSONS if "exercises.check_" in (NOTEBOOKS / "src" / f"{n}.py").read_text()]
 ALL_IPYNB = [NOTEBOOKS / f"{n}.ipynb" for n in LESSONS] + [NOTEBOOKS / "solutions" / f"{n}.ipynb" for n in LESSONS]
 
 
-def test_there_are_four_lessons_with_both_flavours():
-    assert len(LESSONS) >= 4
+def test_there_are_four_exercise_lessons_and_every_lesson_has_both_flavours():
+    assert len(EXERCISE_LESSONS) >= 4
     assert all(p.exists() for p in ALL_IPYNB)
 
 
@@ -37,7 +38,7 @@ def test_committed_notebooks_carry_no_outputs():
                 assert cell.outputs == [] and cell.execution_count is None, path.name
 
 
-REPO_PATTERN = r"github(?:\.com)?/([\w.-]+/[\w.-]+?)(?:\.git|/blob|[\"')\s\\])"
+REPO_PATTERN = r"github(?:usercontent)?(?:\.com)?/([\w.-]+/[\w.-]+?)(?:\.git|/blob|/main|[\"')\s\\])"
 
 
 def test_readme_badges_use_the_one_repository():
@@ -65,7 +66,7 @@ def test_setup_cell_installs_only_in_colab_and_never_touches_torch():
 
 
 def test_learner_flavour_has_no_solutions():
-    for name in LESSONS:
+    for name in EXERCISE_LESSONS:
         learner = (NOTEBOOKS / f"{name}.py").read_text()
         solution = (NOTEBOOKS / "solutions" / f"{name}.py").read_text()
         assert "BEGIN SOLUTION" not in learner + solution
@@ -79,7 +80,7 @@ def _execute(nb):
     NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
 
 
-@pytest.mark.parametrize("name", LESSONS)
+@pytest.mark.parametrize("name", EXERCISE_LESSONS)
 def test_learner_notebook_stops_at_its_first_exercise_checker(name):
     nb = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
     first_check = next(i for i, c in enumerate(nb.cells)

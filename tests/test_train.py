@@ -174,3 +174,23 @@ def test_an_infinite_gradient_norm_skips_the_update(capsys):
     assert train.grpo_step(policy, prompts)["nonfinite_skipped"] == 1
     assert "non-finite gradient" in capsys.readouterr().out
     assert all(torch.equal(a, b) for a, b in zip(before, policy.model.parameters()))
+
+
+def test_gradient_checkpointing_is_engaged_and_exact(monkeypatch):
+    seen, grads = [], []
+    real = train.completion_logprobs
+
+    def spy(model, *args, **kwargs):
+        seen.append((model.training, model.is_gradient_checkpointing))
+        return real(model, *args, **kwargs)
+
+    monkeypatch.setattr(train, "completion_logprobs", spy)
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    for ckpt in (False, True):
+        policy = train.setup(load_config("smoke", gradient_checkpointing=ckpt))
+        policy.optimizer.step = lambda *a, **k: None
+        train.grpo_step(policy, prompts)
+        assert not policy.model.training  # back in eval mode for sampling
+        grads.append(torch.cat([p.grad.flatten() for p in policy.model.parameters()]))
+    assert seen[-1] == (True, True) and seen[0] == (False, False)
+    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-8)
