@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import importlib.util
 import math
 import os
 from dataclasses import dataclass, field
@@ -62,6 +63,8 @@ class Config:
     max_new_tokens: int = _f(48, "longest completion sampled, in tokens")
     temperature: float = _f(1.0, "sampling temperature; the loss uses the same tempered distribution")
     # --- optimizer -----------------------------------------------------------------------------
+    optimizer: str = _f("adamw", "'adamw' (torch), or 'adamw_8bit' (bitsandbytes, GPU only: moments in "
+                                 "8 bits, 6 bytes per parameter less)", ("adamw", "adamw_8bit"))
     lr: float = _f(1e-5, "AdamW learning rate")
     weight_decay: float = _f(0.01, "AdamW weight decay")
     warmup_steps: int = _f(0, "linear learning-rate warm-up steps, then constant")
@@ -173,6 +176,9 @@ class Config:
         need(self.save_every >= 1, "save_every", "must be >= 1")
         need(self.precision != "fp16" or _cuda_available(), "precision",
              "fp16 needs a CUDA GPU; use fp32 on a CPU")
+        need(self.optimizer != "adamw_8bit" or importlib.util.find_spec("bitsandbytes") is not None,
+             "optimizer", "'adamw_8bit' needs bitsandbytes: pip install bitsandbytes (on a GPU "
+             "machine), or use optimizer='adamw'")
         need(isinstance(self.out_dir, str) and self.out_dir != "", "out_dir", "give a directory")
         return self
 

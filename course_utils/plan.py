@@ -88,7 +88,7 @@ def memory_plan(arch: Architecture, cfg, prompt_len: int, completion_len: int) -
     P = arch.n_params
     mixed = cfg.precision in ("fp16", "bf16")
     act_bytes = 2 if mixed else 4
-    eight_bit = getattr(cfg, "optimizer", "adamw") == "adamw_8bit"
+    eight_bit = cfg.optimizer == "adamw_8bit"
     prompts = cfg.prompts_per_step // cfg.grad_accum            # per micro-batch
     rows = prompts * cfg.group_size
     shared = not cfg.gradient_checkpointing                     # prompt forwarded once per group

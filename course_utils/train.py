@@ -240,7 +240,11 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
     if cfg.kl_coef > 0:  # no reference model at all when beta = 0: it would only cost memory
         ref_model = models.load_policy(cfg.model, seed=cfg.seed).to(accelerator.device)
         ref_model.requires_grad_(False)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if cfg.optimizer == "adamw_8bit":  # availability checked by Config.validate
+        import bitsandbytes as bnb
+        optimizer = bnb.optim.AdamW8bit(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    else:
+        optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     warmup = max(cfg.warmup_steps, 0)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda step: min(1.0, (step + 1) / (warmup + 1)) if warmup else 1.0)

@@ -42,6 +42,14 @@ def test_invalid_values_name_the_field_and_the_allowed_range(overrides, field, a
     assert field in str(err.value) and allowed in str(err.value)
 
 
+def test_8bit_adamw_without_bitsandbytes_says_how_to_install_it():
+    import importlib.util
+    if importlib.util.find_spec("bitsandbytes") is not None:
+        pytest.skip("bitsandbytes is installed")
+    with pytest.raises(ConfigError, match="optimizer='adamw_8bit' is invalid.*pip install bitsandbytes"):
+        load_config("smoke", optimizer="adamw_8bit")
+
+
 def test_unknown_key_and_preset_suggest_the_right_name():
     with pytest.raises(ConfigError, match="did you mean 'group_size'"):
         load_config("smoke", grop_size=4)

@@ -47,6 +47,9 @@ def test_memory_plan_terms_respond_to_the_options():
     accum = plan.memory_plan(plan.QWEN25_05B, _cfg(prompts_per_step=4, grad_accum=2), 128, 32)
     whole = plan.memory_plan(plan.QWEN25_05B, _cfg(prompts_per_step=4), 128, 32)
     assert accum["activations"] == pytest.approx(whole["activations"] / 2)
+    from course_utils.config import Config
+    eight_bit = plan.memory_plan(plan.QWEN25_05B, Config(optimizer="adamw_8bit"), 128, 32)
+    assert eight_bit["optimizer state"] == 2 * plan.QWEN25_05B.n_params  # not validated: no GPU here
     ckpt = plan.memory_plan(plan.QWEN25_05B, _cfg(gradient_checkpointing=True), 128, 32)
     assert ckpt["activations"] < whole["activations"] / 4
 
