@@ -34,9 +34,11 @@ def save(run_dir: Path, model, tokenizer, state: dict) -> Path:
     model.save_pretrained(tmp)
     tokenizer.save_pretrained(tmp)
     torch.save(state, tmp / STATE_FILE)
-    shutil.rmtree(old, ignore_errors=True)
     if final.exists():
-        os.replace(final, old)   # the previous checkpoint stays on disk until the new one is in place
+        # the previous checkpoint stays on disk until the new one is in place; if a crash left
+        # only .checkpoint-old, it is kept too (it is the one being resumed from)
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(final, old)
     os.replace(tmp, final)
     shutil.rmtree(old, ignore_errors=True)
     return final

@@ -1,0 +1,55 @@
+"""Checkpoints: a crash between the two renames of a save leaves a usable checkpoint."""
+import json
+
+from course_utils import checkpoint
+
+
+class _Saveable:
+    def __init__(self, tag):
+        self.tag = tag
+
+    def save_pretrained(self, path):
+        (path / "weights.json").write_text(json.dumps(self.tag))
+
+
+def test_a_crash_between_renames_keeps_a_checkpoint_and_the_next_save_recovers(tmp_path):
+    checkpoint.save(tmp_path, _Saveable(1), _Saveable("tok"), {"step": 1})
+    checkpoint.save(tmp_path, _Saveable(2), _Saveable("tok"), {"step": 2})
+    assert checkpoint.find(tmp_path) == tmp_path / "checkpoint"
+    # the crash: the current checkpoint was moved aside, the new one never arrived
+    (tmp_path / "checkpoint").rename(tmp_path / ".checkpoint-old")
+    found = checkpoint.find(tmp_path)
+    assert found == tmp_path / ".checkpoint-old"
+    assert checkpoint.load_state(found, {})["step"] == 2
+    # resuming from .checkpoint-old, a second crash just before the new checkpoint's rename must
+    # still leave a checkpoint behind
+    real_replace = checkpoint.os.replace
+
+    def crash_on_final_rename(src, dst):
+        if str(dst).endswith("/checkpoint"):
+            raise KeyboardInterrupt("killed")
+        real_replace(src, dst)
+
+    checkpoint.os.replace = crash_on_final_rename
+    try:
+        checkpoint.save(tmp_path, _Saveable(3), _Saveable("tok"), {"step": 3})
+    except KeyboardInterrupt:
+        pass
+    finally:
+        checkpoint.os.replace = real_replace
+    assert checkpoint.load_state(checkpoint.find(tmp_path), {})["step"] == 2
+    # and the next save succeeds and cleans up
+    checkpoint.save(tmp_path, _Saveable(3), _Saveable("tok"), {"step": 3})
+    assert checkpoint.load_state(checkpoint.find(tmp_path), {})["step"] == 3
+    assert not (tmp_path / ".checkpoint-old").exists() and not (tmp_path / ".checkpoint-tmp").exists()
+
+
+def test_metrics_log_drops_steps_after_the_checkpoint_and_a_torn_last_line(tmp_path):
+    log = checkpoint.MetricsLog(tmp_path / "m.jsonl")
+    for step in (1, 2, 3):
+        log.append({"step": step})
+    with open(log.path, "a") as f:
+        f.write('{"step": 4, "rew')  # a line cut by a crash
+    assert [r["step"] for r in log.read()] == [1, 2, 3]
+    log.truncate_after(2)
+    assert [r["step"] for r in log.read()] == [1, 2]
