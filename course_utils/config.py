@@ -126,6 +126,13 @@ class Config:
         return math.ceil(self.train_prompts / self.prompts_per_step)
 
     @property
+    def shares_prompt_in_training(self) -> bool:
+        """Whether the training forward runs each prompt once for its whole group (exact, and
+        1/G of the prompt's cost). Not with gradient checkpointing: transformers switches the
+        key/value cache off in checkpointed train mode, and the shared prompt lives in that cache."""
+        return not self.gradient_checkpointing
+
+    @property
     def total_steps(self) -> int:
         steps = self.epochs * self.steps_per_epoch
         return steps if self.max_steps is None else min(steps, self.max_steps)
@@ -196,14 +203,14 @@ def _cuda_available() -> bool:
 PRESETS: dict[str, dict[str, Any]] = {
     # The seed's recipe on a free Colab T4, corrected per the errata (per-prompt groups). Sized
     # by course_utils.plan: micro-batches of 2 prompts x 8 completions keep the peak near 12 GiB
-    # of the T4's 15; 16,384 prompts are ~1.3 h at the plan's rate, a 2x margin on its
+    # of the T4's 15; 10,240 prompts are ~1.3 h at the plan's rate, a 2x margin on its
     # assumptions inside a 3-hour session (lesson 5 prints the arithmetic). Shaped reward: with
     # the binary one, groups that all fail give no gradient (lesson 5's CPU runs: 40 of 40 steps).
     "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
                target_chars=64, reward="shaped", prompts_per_step=16, group_size=8, grad_accum=8,
                max_new_tokens=64, lr=1e-5, weight_decay=0.01, max_grad_norm=1.0,
                entropy_bonus="inverse_variance", entropy_coef=1e-3, precision="fp16",
-               gradient_checkpointing=True, train_prompts=16384, epochs=1, eval_prompts=100,
+               gradient_checkpointing=True, train_prompts=10240, epochs=1, eval_prompts=100,
                save_every=25, out_dir="runs/t4"),
     # The seed's CS-student variant: a base model, so the rule is fixed rather than stated.
     "gpt2-rtx4070": dict(model="gpt2", prompt_source="openwebtext", prompt_style="raw",

@@ -136,18 +136,13 @@ def check_returns_to_go(fn: Callable) -> None:
     rewards = torch.randn(3, 6, generator=g)
     for gamma in (1.0, 0.9):
         want = losses.returns_to_go(rewards, gamma)
-        T = rewards.shape[-1]
-        powers = gamma ** torch.arange(T, dtype=torch.float32)
-        mistakes = {
-            "summed the PAST rewards (k <= t); the return-to-go sums the future (k >= t)":
-                torch.flip(losses.returns_to_go(torch.flip(rewards, [-1]), gamma), [-1]),
-            "discounted by gamma^k from the start; it must be gamma^(k - t), relative to t":
-                torch.flip(torch.cumsum(torch.flip(rewards * powers, [-1]), -1), [-1]),
-            "ignored gamma": losses.returns_to_go(rewards, 1.0),
-        }
-        if gamma == 1.0:
-            mistakes.pop("ignored gamma")
-            mistakes.pop("discounted by gamma^k from the start; it must be gamma^(k - t), relative to t")
+        mistakes = {"summed the PAST rewards (k <= t); the return-to-go sums the future (k >= t)":
+                    torch.flip(losses.returns_to_go(torch.flip(rewards, [-1]), gamma), [-1])}
+        if gamma != 1.0:  # these two mistakes coincide with the right answer when gamma = 1
+            powers = gamma ** torch.arange(rewards.shape[-1], dtype=torch.float32)
+            mistakes["discounted by gamma^k from the start; it must be gamma^(k - t), relative to t"] = \
+                torch.flip(torch.cumsum(torch.flip(rewards * powers, [-1]), -1), [-1])
+            mistakes["ignored gamma"] = losses.returns_to_go(rewards, 1.0)
         _judge(f"{name}, gamma={gamma}", _call(name, fn, rewards.clone(), gamma), want, mistakes)
 
 

@@ -91,8 +91,8 @@ def memory_plan(arch: Architecture, cfg, prompt_len: int, completion_len: int) -
     eight_bit = cfg.optimizer == "adamw_8bit"
     prompts = cfg.prompts_per_step // cfg.grad_accum            # per micro-batch
     rows = prompts * cfg.group_size
-    shared = not cfg.gradient_checkpointing                     # prompt forwarded once per group
-    tokens = rows * completion_len + (prompts if shared else rows) * prompt_len
+    prompt_rows = prompts if cfg.shares_prompt_in_training else rows
+    tokens = rows * completion_len + prompt_rows * prompt_len
     per_layer = arch.activation_values_per_token_layer
     if cfg.gradient_checkpointing:
         activations = tokens * act_bytes * (arch.layers * arch.hidden + per_layer)
@@ -128,14 +128,15 @@ def time_plan(arch: Architecture, cfg, prompt_len: int, completion_len: int,
     B, G = cfg.prompts_per_step, cfg.group_size
     n_body = arch.n_params - arch.n_embedding       # weights every token multiplies through
     completion_tokens = B * G * completion_len
-    prompt_tokens = B * prompt_len                   # once per group (prefix sharing)
+    prompt_tokens = B * prompt_len                   # prefilled once per group when sampling
+    trained_prompt_tokens = prompt_tokens if cfg.shares_prompt_in_training else B * G * prompt_len
     # training: 6 FLOPs per weight per token (forward 2, backward 4), the output layer only at
     # completion positions; checkpointing recomputes the forward (8 instead of 6)
     per_weight = 8 if cfg.gradient_checkpointing else 6
-    train_flops = per_weight * n_body * (completion_tokens + prompt_tokens) + \
+    train_flops = per_weight * n_body * (completion_tokens + trained_prompt_tokens) + \
         per_weight * arch.n_embedding * completion_tokens
-    if cfg.kl_coef > 0:
-        train_flops += 2 * arch.n_params * (completion_tokens + prompt_tokens)
+    if cfg.kl_coef > 0:  # the reference model's forward is not prompt-shared either
+        train_flops += 2 * arch.n_params * (completion_tokens + B * G * prompt_len)
     train_s = train_flops / peak
     # generation: a prefill, then one step per new token; each step reads every weight once
     weight_bytes = arch.n_params * (2 if mixed else 4)

@@ -165,7 +165,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
             logprobs, entropy = completion_logprobs(
                 model, ro.prompt_ids[rows], ro.prompt_mask[rows], ro.completion_ids[rows],
                 mask[rows], temperature=cfg.temperature, with_entropy=True,
-                entropy_grad=ent_weight > 0, group_size=1 if cfg.gradient_checkpointing else G)
+                entropy_grad=ent_weight > 0, group_size=G if cfg.shares_prompt_in_training else 1)
             # One update per batch: pi_old is the current policy, so the ratio is exactly 1 and
             # the step is REINFORCE with a group baseline. More updates: pi_old is the sampler.
             old = logprobs.detach() if cfg.updates_per_batch == 1 else ro.logprobs[rows]

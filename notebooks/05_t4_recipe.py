@@ -123,7 +123,7 @@ print(f"3 hours at that rate: {3 * 3600 / per_step:.0f} steps, "
 
 # %% [markdown]
 # So the seed's budget is out of reach by an order of magnitude. The preset's default run is
-# 16,384 prompts (1,024 steps, one epoch): about 1.3 hours at the planned rate, leaving a factor
+# 10,240 prompts (640 steps, one epoch): about 1.3 hours at the planned rate, leaving a factor
 # of two for the plan's assumptions inside a 3-hour session. The plan is arithmetic, not a
 # measurement: watch the seconds per step in the progress bar and adjust `train_prompts`.
 # Micro-batches of 2 prompts x 8 completions (`grad_accum=8`) keep the peak near 12 GiB; with

@@ -65,3 +65,9 @@ def test_time_plan_by_hand():
     decode = max(4 * a.n_params / 320e9, 2 * a.n_params * 8 / peak) + dev.decode_overhead_s
     assert t["generation s/step"] == pytest.approx(2 * a.n_params * 200 / peak + 10 * decode)
     assert "fits" in plan.format_plan(a, cfg, 100, 10)
+    # gradient checkpointing: the forward is recomputed (8 FLOPs per weight and token instead of
+    # 6) and the prompt is not shared, so it is trained once per completion
+    ckpt = _cfg(prompts_per_step=2, group_size=4, max_new_tokens=16, gradient_checkpointing=True)
+    t = plan.time_plan(a, ckpt, prompt_len=100, completion_len=10)
+    assert t["training s/step"] == pytest.approx(
+        (8 * body * (2 * 4 * 10 + 2 * 4 * 100) + 8 * a.n_embedding * 2 * 4 * 10) / peak)
