@@ -65,6 +65,11 @@ class Config:
     # --- optimizer -----------------------------------------------------------------------------
     optimizer: str = _f("adamw", "'adamw' (torch), or 'adamw_8bit' (bitsandbytes, GPU only: moments in "
                                  "8 bits, 6 bytes per parameter less)", ("adamw", "adamw_8bit"))
+    lora_rank: int = _f(0, "0: full fine-tuning. r > 0: train only rank-r LoRA adapters on every "
+                           "linear layer (peft); the base weights stay frozen, so gradients and "
+                           "optimizer state shrink to the adapters, and the reference model for "
+                           "the KL is the base with adapters switched off (no second copy)")
+    lora_alpha: float = _f(32.0, "LoRA scale numerator: the adapter update is (alpha / r) * B A")
     lr: float = _f(1e-5, "AdamW learning rate")
     weight_decay: float = _f(0.01, "AdamW weight decay")
     warmup_steps: int = _f(0, "linear learning-rate warm-up steps, then constant")
@@ -83,6 +88,10 @@ class Config:
                                    "(DAPO's clip-higher uses 0.28)")
     kl_coef: float = _f(0.0, "beta, weight of the k3 KL to the reference model; 0 loads no "
                              "reference model")
+    kl_schedule: str = _f("constant", "course extension: 'reward_aware' scales kl_coef each step by "
+                                      "(running reward variance / this batch's) x (last gradient "
+                                      "norm / running mean), clipped to [1/4, 4] (losses.RewardAwareKL)",
+                          ("constant", "reward_aware"))
     entropy_bonus: str = _f("none", "course extension, not part of GRPO: 'constant' adds "
                                     "entropy_coef * entropy, 'inverse_variance' scales it by "
                                     "1 / (batch reward variance), capped",
@@ -167,6 +176,8 @@ class Config:
         need(0 < self.clip_eps_low < 1, "clip_eps_low", "must be in (0, 1)")
         need(self.clip_eps_high > 0, "clip_eps_high", "must be > 0")
         need(self.kl_coef >= 0, "kl_coef", "must be >= 0")
+        need(self.kl_schedule == "constant" or self.kl_coef > 0, "kl_schedule",
+             "'reward_aware' scales kl_coef, so it needs kl_coef > 0")
         need(self.entropy_coef >= 0, "entropy_coef", "must be >= 0")
         need(self.entropy_weight_max > 0, "entropy_weight_max", "must be > 0")
         need(self.entropy_bonus == "none" or self.entropy_coef > 0, "entropy_coef",
@@ -186,6 +197,11 @@ class Config:
         need(self.optimizer != "adamw_8bit" or importlib.util.find_spec("bitsandbytes") is not None,
              "optimizer", "'adamw_8bit' needs bitsandbytes: pip install bitsandbytes (on a GPU "
              "machine), or use optimizer='adamw'")
+        need(isinstance(self.lora_rank, int) and self.lora_rank >= 0, "lora_rank",
+             "must be an integer >= 0 (0 turns LoRA off)")
+        need(self.lora_alpha > 0, "lora_alpha", "must be > 0")
+        need(self.lora_rank == 0 or importlib.util.find_spec("peft") is not None, "lora_rank",
+             "LoRA needs peft: pip install peft, or use lora_rank=0 (full fine-tuning)")
         need(isinstance(self.out_dir, str) and self.out_dir != "", "out_dir", "give a directory")
         return self
 

@@ -10,6 +10,8 @@ gradient estimate. Its value is not a measure of how well the policy does; plot 
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -110,11 +112,14 @@ def group_advantages(rewards: torch.Tensor, group_size: int, center: str = "grou
         raise ValueError(f"rewards must be 1-D with a multiple of group_size={group_size} "
                          f"entries, got shape {tuple(rewards.shape)}")
     r = rewards.view(-1, group_size)
-    zero_std_groups = int((r.max(-1).values == r.min(-1).values).sum())
+    constant = r.max(-1, keepdim=True).values == r.min(-1, keepdim=True).values
+    zero_std_groups = int(constant.sum())
     if center == "group":
-        centred = r - r.mean(-1, keepdim=True)
+        # exactly 0 for an all-equal group: r - mean(r) can be a rounding error (the mean of
+        # seven copies of x need not be x), and dividing that by std + eps would blow it up
+        centred = torch.where(constant, 0.0, r - r.mean(-1, keepdim=True))
     elif center == "batch":
-        centred = r - rewards.mean()
+        centred = r - rewards.mean() if rewards.max() > rewards.min() else torch.zeros_like(r)
     else:
         raise ValueError(f"center must be 'group' or 'batch', got {center!r}")
     if scale == "group":
@@ -176,6 +181,43 @@ def entropy_weight(rewards: torch.Tensor, mode: str, coef: float, max_weight: fl
     raise ValueError(f"unknown entropy bonus mode {mode!r}")
 
 
+class RewardAwareKL:
+    """A KL coefficient that reacts to the batch (a course extension for the frontier-researcher
+    track, not part of GRPO): beta_t = beta * clip((v_avg / v_t) * (g_{t-1} / g_avg), 1/r, r).
+
+    v_t is this batch's reward variance and g_{t-1} the previous step's gradient norm; v_avg and
+    g_avg are their running (exponential) means. A batch with less reward spread than usual
+    carries less signal, and a step with a larger gradient than usual moves the policy further:
+    both pull harder towards the reference. The ratio is clipped to [1/r, r]."""
+
+    def __init__(self, beta: float, clip_range: float = 4.0, momentum: float = 0.9, eps: float = 1e-6):
+        self.beta, self.clip_range, self.momentum, self.eps = beta, clip_range, momentum, eps
+        self.var_avg: float | None = None
+        self.grad_avg: float | None = None
+        self.last_grad: float | None = None
+
+    def coefficient(self, rewards: torch.Tensor) -> float:
+        var = float(rewards.float().var(unbiased=False))
+        self.var_avg = var if self.var_avg is None else self.momentum * self.var_avg + (1 - self.momentum) * var
+        factor = (self.var_avg + self.eps) / (var + self.eps)
+        if self.last_grad is not None and self.grad_avg:
+            factor *= self.last_grad / self.grad_avg
+        return self.beta * min(max(factor, 1 / self.clip_range), self.clip_range)
+
+    def observe_gradient(self, grad_norm: float) -> None:
+        if not math.isfinite(grad_norm):
+            return
+        self.last_grad = grad_norm
+        self.grad_avg = grad_norm if self.grad_avg is None else \
+            self.momentum * self.grad_avg + (1 - self.momentum) * grad_norm
+
+    def state_dict(self) -> dict:
+        return dict(var_avg=self.var_avg, grad_avg=self.grad_avg, last_grad=self.last_grad)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.var_avg, self.grad_avg, self.last_grad = state["var_avg"], state["grad_avg"], state["last_grad"]
+
+
 def aggregate(per_token: torch.Tensor, mask: torch.Tensor, loss_type: str,
               max_completion_length: int | None = None, total_sequences: int | None = None,
               total_tokens: int | float | None = None) -> torch.Tensor:
@@ -222,6 +264,14 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
     per-token loss = -min(rho A, clip(rho) A) + beta * KL_k3 - entropy_weight * H
     The KL term sits in the loss (not in the reward) so it regularizes every token directly.
     """
+    # Whatever padding positions hold must not matter, not even an inf (0 * inf is NaN): replace
+    # it with 0 before any exp, which also keeps the gradient at padding exactly 0.
+    real = mask.bool()
+    logprobs, old_logprobs = torch.where(real, logprobs, 0.0), torch.where(real, old_logprobs, 0.0)
+    if ref_logprobs is not None:
+        ref_logprobs = torch.where(real, ref_logprobs, 0.0)
+    if entropy is not None:
+        entropy = torch.where(real, entropy, 0.0)
     per_token, clipped = clipped_surrogate(logprobs, old_logprobs, advantages, eps_low, eps_high)
     stats = {"clip_fraction": masked_mean(clipped.float(), mask)}
     if beta > 0:

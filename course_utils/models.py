@@ -140,6 +140,31 @@ def load_policy(name: str, dtype: torch.dtype = torch.float32, seed: int = 0):
     return model.eval()
 
 
+def enable_checkpointing(model) -> None:
+    """Recompute each layer's activations in the backward pass instead of storing them.
+    Non-reentrant checkpointing (the default of recent transformers, stated here for older
+    ones) also passes gradients through when the embeddings are frozen, as under LoRA."""
+    enable = getattr(model, "activation_checkpointing_enable", None)  # transformers >= 5.x name
+    if enable is not None:
+        enable(activation_checkpointing_kwargs={"use_reentrant": False})
+    else:
+        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+
+
+def add_lora(model, rank: int, alpha: float, adapter_dir: str | Path | None = None):
+    """Freeze ``model`` and attach rank-``rank`` LoRA adapters to every linear layer but the
+    output head: W x becomes W x + (alpha / rank) B A x with A: r x d_in, B: d_out x r. B starts
+    at zero, so the adapted model is exactly the base model at step 0. ``adapter_dir`` loads
+    adapters saved by a checkpoint instead (resume)."""
+    from peft import LoraConfig, PeftModel, get_peft_model
+
+    if adapter_dir is not None:
+        return PeftModel.from_pretrained(model, str(adapter_dir), is_trainable=True)
+    config = LoraConfig(r=rank, lora_alpha=alpha, lora_dropout=0.0, target_modules="all-linear",
+                        bias="none", task_type="CAUSAL_LM")
+    return get_peft_model(model, config)
+
+
 def eos_token_ids(model, tokenizer) -> list[int]:
     """Every id that ends a completion: the tokenizer's EOS and the generation config's list
     (Qwen2.5-Instruct ends turns with <|im_end|> and documents with <|endoftext|>)."""

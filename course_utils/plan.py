@@ -1,12 +1,13 @@
 """A memory and time plan for a GRPO run, printed before training starts.
 
-Memory is counted term by term for full fine-tuning with fp32 master weights (AdamW), in the
+Memory is counted term by term for fine-tuning with fp32 master weights (AdamW), in the
 steady state (from the second step on, when the optimizer's moments exist). Persistent:
 
   weights 4P + grads 4P + AdamW moments 8P (2P with 8-bit AdamW) + fp16/bf16 weight copies made
   by autocast 2P + reference model (only if kl_coef > 0) + runtime overhead,
 
-P the parameter count, plus the larger of two transients: activations + logits during the
+P the parameter count (under LoRA, gradients, moments and the update's temporary count only the
+adapters' parameters, and the KL's reference is the base model with adapters off), plus the larger of two transients: activations + logits during the
 forward/backward, or one parameter-sized temporary (4P) during AdamW's update (PyTorch's
 multi-tensor AdamW computes sqrt(v) out of place). Activations are what the backward pass keeps for one micro-batch:
 about ``11 h + 4 kv + 4 i`` values per token and layer for a Llama/Qwen2 block (two RMSNorms,
@@ -54,6 +55,12 @@ class Architecture:
     def n_embedding(self) -> int:
         return self.vocab * self.hidden
 
+    def lora_params(self, rank: int) -> int:
+        """Adapter parameters for rank ``rank`` on every linear layer of every block: each
+        d_in x d_out matrix gains r (d_in + d_out). Per block q, k, v, o, gate, up, down give
+        2h + 2(h + kv) + 2h + 3(h + i) = 9h + 2kv + 3i."""
+        return rank * self.layers * (9 * self.hidden + 2 * self.kv_dim + 3 * self.intermediate)
+
 
 # Qwen2.5-0.5B-Instruct (tied embeddings): 494,032,768 parameters.
 QWEN25_05B = Architecture(n_params=494_032_768, hidden=896, layers=24, kv_dim=2 * 64,
@@ -86,6 +93,10 @@ TRANSIENT = ("activations", "logits (completion positions)", "optimizer step tem
 def memory_plan(arch: Architecture, cfg, prompt_len: int, completion_len: int) -> dict[str, float]:
     """Bytes per component of one training step; ``peak_bytes`` combines them."""
     P = arch.n_params
+    # what the optimizer updates: every weight, or under LoRA only the adapters (the frozen
+    # base needs no gradient and no moments; activations are still kept, for the gradient
+    # that flows through the frozen layers to the adapters below them)
+    trained = arch.lora_params(cfg.lora_rank) if getattr(cfg, "lora_rank", 0) else P
     mixed = cfg.precision in ("fp16", "bf16")
     act_bytes = 2 if mixed else 4
     eight_bit = cfg.optimizer == "adamw_8bit"
@@ -100,16 +111,17 @@ def memory_plan(arch: Architecture, cfg, prompt_len: int, completion_len: int) -
         activations = tokens * act_bytes * arch.layers * per_layer
     logits_values = rows * (completion_len + 1) * arch.vocab
     logits = logits_values * ((act_bytes if mixed else 0) + 4 + 4 + 8)
+    separate_reference = cfg.kl_coef > 0 and trained == P   # LoRA: the base with adapters off
     return {
-        "weights (fp32 master)": 4 * P,
-        "gradients": 4 * P,
-        "optimizer state": (2 if eight_bit else 8) * P,
+        "weights (fp32 master)": 4 * (P + (trained if trained != P else 0)),
+        "gradients": 4 * trained,
+        "optimizer state": (2 if eight_bit else 8) * trained,
         "autocast weight copies": 2 * P if mixed else 0,
-        "reference model": ((2 if mixed else 4) * P) if cfg.kl_coef > 0 else 0,
+        "reference model": ((2 if mixed else 4) * P) if separate_reference else 0,
         "runtime overhead": RUNTIME_OVERHEAD,
         "activations": activations,
         "logits (completion positions)": logits,
-        "optimizer step temporary": (1 if eight_bit else 4) * P,
+        "optimizer step temporary": (1 if eight_bit else 4) * trained,
     }
 
 

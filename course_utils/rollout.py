@@ -78,7 +78,7 @@ def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_
     attention = prompt_mask
     next_position = positions[:, -1:] + 1
     eos = torch.tensor(eos_ids, device=logits.device)
-    done = torch.zeros(n, dtype=torch.bool, device=logits.device)
+    live = torch.arange(n, device=logits.device)   # rows still being decoded
     tokens, token_logprobs = [], []
     for _ in range(max_new_tokens):
         logp = F.log_softmax(logits if greedy else logits / temperature, dim=-1)
@@ -86,13 +86,19 @@ def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_
             token = logp.argmax(-1)
         else:
             token = torch.multinomial(logp.exp(), 1, generator=generator).squeeze(-1)
-        token = torch.where(done, torch.full_like(token, pad_id), token)
-        tokens.append(token)
-        token_logprobs.append(logp.gather(-1, token.unsqueeze(-1)).squeeze(-1))
-        done |= torch.isin(token, eos)
-        if done.all():
+        # finished rows get padding (and log-probability 0) from here on
+        tokens.append(torch.full((n,), pad_id, dtype=token.dtype, device=token.device).index_copy(0, live, token))
+        token_logprobs.append(logp.new_zeros(n).index_copy(0, live, logp.gather(-1, token[:, None]).squeeze(-1)))
+        going = ~torch.isin(token, eos)
+        if not going.any():
             break
-        attention = torch.cat([attention, attention.new_ones(n, 1)], dim=-1)
+        if not going.all():
+            # Drop the rows that just stopped from the batch and the cache: a decoding step then
+            # costs what the live rows need, not what the longest completion needs for all.
+            keep = going.nonzero().squeeze(-1)
+            cache.batch_select_indices(keep)
+            live, token, attention, next_position = live[keep], token[keep], attention[keep], next_position[keep]
+        attention = torch.cat([attention, attention.new_ones(len(live), 1)], dim=-1)
         out = model(input_ids=token.unsqueeze(-1), attention_mask=attention,
                     position_ids=next_position, past_key_values=cache, use_cache=True)
         logits, next_position = out.logits[:, -1].float(), next_position + 1
@@ -133,55 +139,86 @@ def rollout(model, tokenizer, prompts: list[str], *, group_size: int, max_new_to
                    texts=texts, truncated=truncated, group_size=group_size)
 
 
+# Rows per chunk of the training forward (rows sorted by completion length, each chunk cut to its
+# own longest completion): small enough that little padding is computed, large enough for
+# efficient matrix multiplies.
+ROWS_PER_CHUNK = 8
+
+
 def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor,
                         completion_ids: torch.Tensor, completion_mask: torch.Tensor, *,
                         temperature: float = 1.0, with_entropy: bool = False,
-                        entropy_grad: bool = False, group_size: int = 1):
+                        entropy_grad: bool = False, group_size: int = 1,
+                        rows_per_chunk: int = ROWS_PER_CHUNK):
     """log pi_theta(o_t | q, o_<t) for every completion token (with autograd), and optionally
     the per-token entropy (differentiable only if ``entropy_grad``: when the entropy is just
     logged, keeping its graph would hold several [N, T, vocab] tensors for nothing). Logits are
-    computed for completion positions only.
+    computed for completion positions only; padding positions get 0.
 
     The same temperature as in sampling is applied, so on-policy the ratio pi_theta / pi_old
     starts at exactly 1 (up to floating-point noise).
 
-    With ``group_size`` G > 1 (rows g*G ... g*G+G-1 share one prompt), each prompt is forwarded
-    once, with autograd, and its keys/values are repeated for its G completions. The result and
-    the gradient are those of the full-sequence forward (the copies are the same tensors, and
-    the gradient of a repeat sums over the copies), at about 1/G of the prompt's cost.
+    Two savings, both exact:
+    - With ``group_size`` G > 1 (rows g*G ... g*G+G-1 share one prompt), each prompt is
+      forwarded once, with autograd, and its keys/values are copied to its G completions. The
+      gradient of a copy sums over the copies, so values and gradients are those of the
+      full-sequence forward, at 1/G of the prompt's cost.
+    - Rows are sorted by completion length and forwarded in chunks, each cut to its own longest
+      completion: one long completion no longer makes every row pay for its length.
     """
+    N, T = completion_ids.shape
+    lengths = completion_mask.sum(-1)
+    prompt_kv = None
     if group_size > 1:
-        logits = _shared_prompt_logits(model, prompt_ids, prompt_mask, completion_ids,
-                                       completion_mask, group_size)
-    else:
-        input_ids = torch.cat([prompt_ids, completion_ids], dim=-1)
-        attention = torch.cat([prompt_mask, completion_mask.to(prompt_mask.dtype)], dim=-1)
-        T = completion_ids.shape[1]
-        # Position P-1+t predicts completion token t, so keep the last T+1 positions and drop
-        # the final one (it would predict a token after the completion).
-        logits = model(input_ids=input_ids, attention_mask=attention,
-                       position_ids=_positions(attention), logits_to_keep=T + 1).logits[:, :-1]
-    logits = logits.float() / temperature
-    # gather minus logsumexp = log_softmax at the chosen token, without a second [N, T, V] tensor
-    logprobs = logits.gather(-1, completion_ids.unsqueeze(-1)).squeeze(-1) - logits.logsumexp(-1)
-    entropy = None
-    if with_entropy:
-        with torch.set_grad_enabled(entropy_grad and torch.is_grad_enabled()):
-            entropy = token_entropy(logits)
+        unique_mask = prompt_mask[::group_size]
+        out = model(input_ids=prompt_ids[::group_size], attention_mask=unique_mask,
+                    position_ids=_positions(unique_mask), use_cache=True, logits_to_keep=1)
+        prompt_kv = (out.past_key_values, out.logits[:, -1:])
+    logprobs = torch.zeros(N, T, device=completion_ids.device)
+    entropy = torch.zeros(N, T, device=completion_ids.device) if with_entropy else None
+    order = torch.argsort(lengths, descending=True, stable=True)
+    for rows in order.split(rows_per_chunk):
+        L = max(int(lengths[rows].max()), 1)
+        if prompt_kv is None:
+            logits = _full_logits(model, prompt_ids[rows], prompt_mask[rows],
+                                  completion_ids[rows, :L], completion_mask[rows, :L])
+        else:
+            logits = _shared_prompt_logits(model, *prompt_kv, rows // group_size, prompt_mask[rows],
+                                           completion_ids[rows, :L], completion_mask[rows, :L])
+        logits = logits.float() / temperature
+        # gather minus logsumexp = log_softmax at the chosen token, without a second [n, L, V] tensor
+        ids = completion_ids[rows, :L]
+        logprobs[rows, :L] = logits.gather(-1, ids.unsqueeze(-1)).squeeze(-1) - logits.logsumexp(-1)
+        if with_entropy:
+            with torch.set_grad_enabled(entropy_grad and torch.is_grad_enabled()):
+                entropy[rows, :L] = token_entropy(logits)
     return logprobs, entropy
 
 
-def _shared_prompt_logits(model, prompt_ids, prompt_mask, completion_ids, completion_mask, G):
-    """Logits predicting each completion token, with every prompt forwarded once for its group."""
-    P, T = prompt_ids.shape[1], completion_ids.shape[1]
-    unique_ids, unique_mask = prompt_ids[::G], prompt_mask[::G]
-    out = model(input_ids=unique_ids, attention_mask=unique_mask, position_ids=_positions(unique_mask),
-                use_cache=True, logits_to_keep=1)
-    first = out.logits[:, -1:].repeat_interleave(G, 0)      # the last prompt position predicts o_0
+def _full_logits(model, prompt_ids, prompt_mask, completion_ids, completion_mask):
+    """Logits predicting each completion token, from one forward over prompt + completion."""
+    input_ids = torch.cat([prompt_ids, completion_ids], dim=-1)
+    attention = torch.cat([prompt_mask, completion_mask.to(prompt_mask.dtype)], dim=-1)
+    T = completion_ids.shape[1]
+    # Position P-1+t predicts completion token t, so keep the last T+1 positions and drop
+    # the final one (it would predict a token after the completion).
+    return model(input_ids=input_ids, attention_mask=attention,
+                 position_ids=_positions(attention), logits_to_keep=T + 1).logits[:, :-1]
+
+
+def _shared_prompt_logits(model, prompt_cache, prompt_last_logits, groups, prompt_mask,
+                          completion_ids, completion_mask):
+    """Logits predicting each completion token of some rows, given their prompts' keys/values
+    (computed once per prompt, with autograd); ``groups`` says which prompt each row continues."""
+    from transformers import DynamicCache
+
+    P, T = prompt_mask.shape[1], completion_ids.shape[1]
+    first = prompt_last_logits.index_select(0, groups)       # the last prompt position predicts o_0
     if T == 1:
         return first
-    cache = out.past_key_values
-    cache.batch_repeat_interleave(G)                         # differentiable: gradients add up
+    cache = DynamicCache()
+    for i, layer in enumerate(prompt_cache.layers):           # copies: their gradients add up
+        cache.update(layer.keys.index_select(0, groups), layer.values.index_select(0, groups), i)
     attention = torch.cat([prompt_mask, completion_mask.to(prompt_mask.dtype)], dim=-1)
     positions = _positions(attention)
     rest = model(input_ids=completion_ids[:, :-1], attention_mask=attention[:, :P + T - 1],

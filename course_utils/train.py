@@ -13,6 +13,7 @@ appends one record to ``metrics.jsonl``; checkpoints are written every ``save_ev
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import time
@@ -44,7 +45,8 @@ def score(prompts: list[data.Prompt], texts: list[str], reward_name: str) -> dic
     try:
         values = reward_fn(prompts=[p.text for p in prompts], completions=texts, **targets)
     except Exception as err:
-        raise RewardError(f"reward function {reward_name!r} raised {type(err).__name__}: {err}") from err
+        raise RewardError(f"reward function {reward_name!r} raised {type(err).__name__}: {err}"
+                          f"{_first_failing(reward_fn, prompts, texts)}") from err
     if len(values) != len(texts):
         raise RewardError(f"reward function {reward_name!r} returned {len(values)} values for "
                           f"{len(texts)} completions")
@@ -54,6 +56,7 @@ def score(prompts: list[data.Prompt], texts: list[str], reward_name: str) -> dic
                               f"completion {text!r:.120}; rewards must be finite numbers")
     checks = rewards.check_all(texts, **targets)
     return dict(
+        empty=torch.tensor([rewards.completion_text(t) == "" for t in texts], dtype=torch.float32),
         rewards=torch.tensor(values, dtype=torch.float32),
         length_ok=torch.tensor([c.length_ok for c in checks], dtype=torch.float32),
         digits_ok=torch.tensor([c.digits_ok for c in checks], dtype=torch.float32),
@@ -61,6 +64,17 @@ def score(prompts: list[data.Prompt], texts: list[str], reward_name: str) -> dic
         chars_abs_error=torch.tensor([abs(c.n_chars - p.target_chars) for c, p in zip(checks, prompts)],
                                      dtype=torch.float32),
     )
+
+
+def _first_failing(reward_fn, prompts: list[data.Prompt], texts: list[str]) -> str:
+    """Find the completion a reward function fails on, by scoring them one at a time."""
+    for p, text in zip(prompts, texts):
+        try:
+            reward_fn(prompts=[p.text], completions=[text], target_chars=[p.target_chars],
+                      target_digit_sum=[p.target_digit_sum])
+        except Exception:
+            return f" (on the completion {text!r:.120})"
+    return " (no single completion fails alone: the error depends on the whole batch)"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -113,6 +127,7 @@ class Policy:
     eos_ids: list[int]
     generator: torch.Generator
     ref_model: typing.Any = None
+    kl_schedule: typing.Any = None   # losses.RewardAwareKL when cfg.kl_schedule == "reward_aware"
     counters: dict = field(default_factory=lambda: {"nonfinite_skipped": 0})
 
 
@@ -125,33 +140,92 @@ def _skip_update(policy: Policy, what: str) -> None:
           f"forward pass overflowed; if it repeats, use precision='fp32' or a lower lr.")
 
 
-def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
-    """Sample, score, and update once on ``prompts``. Returns the step's metrics."""
-    cfg, model, acc = policy.cfg, policy.model, policy.accelerator
-    G = cfg.group_size
-    t0 = time.perf_counter()
-    ro = rollout(model, policy.tokenizer, [p.text for p in prompts], group_size=G,
-                 max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
-                 temperature=cfg.temperature, generator=policy.generator)
-    t_gen = time.perf_counter()
-    repeated = [p for p in prompts for _ in range(G)]
-    s = score(repeated, ro.texts, cfg.reward)
-    device = ro.completion_ids.device
-    advantages, zero_std = losses.group_advantages(s["rewards"], G, cfg.advantage_center,
-                                                   cfg.advantage_scale)
-    advantages = advantages.to(device)
-    ent_weight = losses.entropy_weight(s["rewards"], cfg.entropy_bonus, cfg.entropy_coef,
-                                       cfg.entropy_weight_max)
-    mask = ro.completion_mask
-    n_seq, n_tok = mask.shape[0], int(mask.sum())
+@torch.no_grad()
+def reference_logprobs(policy: Policy, ro) -> torch.Tensor:
+    """log pi_ref of the sampled completions, for the KL term. Under LoRA the reference is the
+    policy with its adapters disabled: the frozen base weights *are* the pre-trained model."""
+    args = (ro.prompt_ids, ro.prompt_mask, ro.completion_ids, ro.completion_mask)
+    kwargs = dict(temperature=policy.cfg.temperature, group_size=policy.cfg.group_size)
+    if policy.ref_model is not None:
+        return completion_logprobs(policy.ref_model, *args, **kwargs)[0]
+    with policy.accelerator.unwrap_model(policy.model).disable_adapter():
+        return completion_logprobs(policy.model, *args, **kwargs)[0]
 
+
+class PhaseTimer:
+    """Seconds spent per phase of a step (generation, scoring, forward, ...), for the metrics
+    and the benchmark."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, phase: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[phase] = self.seconds.get(phase, 0.0) + time.perf_counter() - start
+
+
+def _all_reduce_gradients(policy: Policy) -> None:
+    """Several processes: each backward gave its own prompts' share of one global sum (the loss
+    is normalized by global counts), so adding the shares gives the full batch's gradient."""
+    for param in policy.model.parameters():
+        if param.requires_grad:
+            if param.grad is None:
+                param.grad = torch.zeros_like(param)
+            torch.distributed.all_reduce(param.grad, op=torch.distributed.ReduceOp.SUM)
+
+
+def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
+    """Sample, score, and update once on ``prompts`` (the global batch). Returns the metrics.
+
+    With several processes (``accelerate launch``), process k samples and trains prompts
+    k*B/W ... (k+1)*B/W - 1: whole groups, so per-group statistics are exact. Rewards are
+    gathered from every process before the advantages and the entropy weight are computed, so
+    batch-level options see the whole batch too, and every count in the loss is global.
+    """
+    cfg, model, acc = policy.cfg, policy.model, policy.accelerator
+    G, W, rank = cfg.group_size, acc.num_processes, acc.process_index
+    if len(prompts) % W:
+        raise ValueError(f"{len(prompts)} prompts per step cannot be split over {W} processes: "
+                         f"set prompts_per_step to a multiple of {W}")
+    per_process = len(prompts) // W
+    if per_process % cfg.grad_accum:
+        raise ValueError(f"{per_process} prompts per process cannot be split into grad_accum="
+                         f"{cfg.grad_accum} micro-batches of whole groups: make prompts_per_step "
+                         f"a multiple of {W * cfg.grad_accum}")
+    local = prompts[rank * per_process:(rank + 1) * per_process]
+    timer = PhaseTimer()
+    t0 = time.perf_counter()
+    with timer("generation"):
+        ro = rollout(model, policy.tokenizer, [p.text for p in local], group_size=G,
+                     max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
+                     temperature=cfg.temperature, generator=policy.generator)
+    with timer("scoring"):
+        s = score([p for p in local for _ in range(G)], ro.texts, cfg.reward)
+        s["truncated"] = ro.truncated.float().cpu()
+        if W > 1:  # everyone's rewards and flags, in process order (= the global batch order)
+            s = {k: acc.gather(v.to(acc.device)).cpu() for k, v in s.items()}
+        advantages, zero_std = losses.group_advantages(s["rewards"], G, cfg.advantage_center,
+                                                       cfg.advantage_scale)
+        ent_weight = losses.entropy_weight(s["rewards"], cfg.entropy_bonus, cfg.entropy_coef,
+                                           cfg.entropy_weight_max)
+        mine = slice(rank * per_process * G, (rank + 1) * per_process * G)
+        advantages_local = advantages[mine].to(ro.completion_ids.device)
+    mask = ro.completion_mask
+    n_local = mask.shape[0]
+    n_seq = n_local * W
+    n_tok = int(acc.reduce(mask.sum().to(acc.device), "sum")) if W > 1 else int(mask.sum())
+
+    beta = policy.kl_schedule.coefficient(s["rewards"]) if policy.kl_schedule else cfg.kl_coef
     ref_logprobs = None
     if cfg.kl_coef > 0:
-        with torch.no_grad():
-            ref_logprobs, _ = completion_logprobs(policy.ref_model, ro.prompt_ids, ro.prompt_mask,
-                                                  ro.completion_ids, mask, temperature=cfg.temperature)
+        with timer("reference"):
+            ref_logprobs = reference_logprobs(policy, ro)
 
-    rows_per_micro = n_seq // cfg.grad_accum  # whole groups per micro-batch (checked by validate)
+    rows_per_micro = n_local // cfg.grad_accum  # whole groups per micro-batch (checked by validate)
     # transformers checkpoints activations only in train mode; sampling stays in eval mode (with
     # checkpointing on, train mode would switch off the KV cache). Dropout is off either way.
     model.train(cfg.gradient_checkpointing)
@@ -160,57 +234,73 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
     for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
         step_ok = True
-        for start in range(0, n_seq, rows_per_micro):
+        for start in range(0, n_local, rows_per_micro):
             rows = slice(start, start + rows_per_micro)
-            logprobs, entropy = completion_logprobs(
-                model, ro.prompt_ids[rows], ro.prompt_mask[rows], ro.completion_ids[rows],
-                mask[rows], temperature=cfg.temperature, with_entropy=True,
-                entropy_grad=ent_weight > 0, group_size=G if cfg.shares_prompt_in_training else 1)
-            # One update per batch: pi_old is the current policy, so the ratio is exactly 1 and
-            # the step is REINFORCE with a group baseline. More updates: pi_old is the sampler.
-            old = logprobs.detach() if cfg.updates_per_batch == 1 else ro.logprobs[rows]
-            loss, stats = losses.grpo_loss(
-                logprobs, old, advantages[rows], mask[rows], loss_type=cfg.loss_type,
-                eps_low=cfg.clip_eps_low, eps_high=cfg.clip_eps_high,
-                ref_logprobs=None if ref_logprobs is None else ref_logprobs[rows],
-                beta=cfg.kl_coef, entropy=entropy, entropy_weight=ent_weight,
-                max_completion_length=cfg.max_new_tokens, total_sequences=n_seq,
-                total_tokens=n_tok)
+            with timer("forward"):
+                logprobs, entropy = completion_logprobs(
+                    model, ro.prompt_ids[rows], ro.prompt_mask[rows], ro.completion_ids[rows],
+                    mask[rows], temperature=cfg.temperature, with_entropy=True,
+                    entropy_grad=ent_weight > 0,
+                    group_size=G if cfg.shares_prompt_in_training else 1)
+                # One update per batch: pi_old is the current policy, so the ratio is exactly 1
+                # and the step is REINFORCE with a group baseline. More: pi_old is the sampler.
+                old = logprobs.detach() if cfg.updates_per_batch == 1 else ro.logprobs[rows]
+                loss, stats = losses.grpo_loss(
+                    logprobs, old, advantages_local[rows], mask[rows], loss_type=cfg.loss_type,
+                    eps_low=cfg.clip_eps_low, eps_high=cfg.clip_eps_high,
+                    ref_logprobs=None if ref_logprobs is None else ref_logprobs[rows],
+                    beta=beta, entropy=entropy, entropy_weight=ent_weight,
+                    max_completion_length=cfg.max_new_tokens, total_sequences=n_seq,
+                    total_tokens=n_tok)
             if not torch.isfinite(loss):
                 step_ok = False
                 break
-            acc.backward(loss)
+            with timer("backward"):
+                acc.backward(loss)
             loss_total += float(loss.detach()) / cfg.updates_per_batch
             for k, v in stats.items():  # token-weighted average over micro-batches
                 stats_sum[k] = stats_sum.get(k, 0.0) + v * float(mask[rows].sum()) / n_tok / cfg.updates_per_batch
+        if W > 1:  # every process must agree to skip, and then reduce together
+            step_ok = bool(acc.reduce(torch.tensor(float(step_ok), device=acc.device), "sum") == W)
+            if step_ok:
+                with timer("backward"):
+                    _all_reduce_gradients(policy)
         if not step_ok:
             _skip_update(policy, "loss")
             continue
-        grad_norm = float(acc.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
-        if not math.isfinite(grad_norm) and cfg.precision != "fp16":
-            _skip_update(policy, "gradient")
-            continue
-        # With fp16, accelerate's gradient scaler skips a step whose gradients overflowed and
-        # lowers its scale (it must see the step to do so); count those skips too.
-        policy.optimizer.step()
-        if acc.optimizer_step_was_skipped:
-            policy.counters["nonfinite_skipped"] += 1
+        with timer("optimizer"):
+            grad_norm = float(acc.clip_grad_norm_(model.parameters(), cfg.max_grad_norm))
+            if not math.isfinite(grad_norm) and cfg.precision != "fp16":
+                _skip_update(policy, "gradient")
+                continue
+            # With fp16, accelerate's gradient scaler skips a step whose gradients overflowed
+            # and lowers its scale (it must see the step to do so); count those skips too.
+            if policy.kl_schedule:
+                policy.kl_schedule.observe_gradient(grad_norm)
+            policy.optimizer.step()
+            if acc.optimizer_step_was_skipped:
+                policy.counters["nonfinite_skipped"] += 1
     model.eval()
     policy.scheduler.step()
+    if W > 1:  # the loss and the token statistics are each process's share of a global sum
+        shares = acc.reduce(torch.tensor([loss_total, *stats_sum.values()], device=acc.device), "sum")
+        loss_total, stats_sum = float(shares[0]), dict(zip(stats_sum, shares[1:].tolist()))
     t_end = time.perf_counter()
     lengths = mask.sum(-1).float()
-    total_tokens = int(ro.prompt_mask.sum()) + n_tok
+    total_tokens = (int(ro.prompt_mask.sum()) + int(mask.sum())) * W
     return dict(
         reward_mean=float(s["rewards"].mean()), reward_std=float(s["rewards"].std()),
         pass_length=float(s["length_ok"].mean()), pass_digits=float(s["digits_ok"].mean()),
         pass_both=float(s["passed"].mean()), chars_abs_error=float(s["chars_abs_error"].mean()),
         adv_mean=float(advantages.mean()), adv_std=float(advantages.std()),
         adv_abs_mean=float(advantages.abs().mean()), zero_std_frac=zero_std / len(prompts),
-        entropy_weight=ent_weight, completion_tokens=float(lengths.mean()),
-        truncated_frac=float(ro.truncated.float().mean()), loss=loss_total, grad_norm=grad_norm,
+        entropy_weight=ent_weight, kl_coef=beta, completion_tokens=float(lengths.mean()),
+        truncated_frac=float(s["truncated"].mean()), empty_frac=float(s["empty"].mean()),
+        loss=loss_total, grad_norm=grad_norm,
         lr=policy.scheduler.get_last_lr()[0], nonfinite_skipped=policy.counters["nonfinite_skipped"],
-        gen_time=t_gen - t0, train_time=t_end - t_gen, step_time=t_end - t0,
-        tokens_per_s=total_tokens / (t_end - t0), **stats_sum,
+        gen_time=timer.seconds["generation"], train_time=t_end - t0 - timer.seconds["generation"],
+        step_time=t_end - t0, tokens_per_s=total_tokens / (t_end - t0),
+        **{f"time_{phase}": sec for phase, sec in timer.seconds.items()}, **stats_sum,
     )
 
 
@@ -232,28 +322,44 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
         AcceleratorState._reset_state()
     accelerator = Accelerator(mixed_precision=mixed)
     tokenizer = models.load_tokenizer(cfg.model)
-    model = (models.load_policy(str(init_from)) if init_from else
-             models.load_policy(cfg.model, seed=cfg.seed))
+    if cfg.lora_rank:  # the base weights always come from cfg.model; a checkpoint holds adapters
+        model = models.load_policy(cfg.model, seed=cfg.seed)
+    else:
+        model = (models.load_policy(str(init_from)) if init_from else
+                 models.load_policy(cfg.model, seed=cfg.seed))
     if cfg.gradient_checkpointing:
-        model.gradient_checkpointing_enable()
+        models.enable_checkpointing(model)
+    if cfg.lora_rank:
+        model = models.add_lora(model, cfg.lora_rank, cfg.lora_alpha, adapter_dir=init_from)
     ref_model = None
-    if cfg.kl_coef > 0:  # no reference model at all when beta = 0: it would only cost memory
+    if cfg.kl_coef > 0 and not cfg.lora_rank:
+        # No reference model at all when beta = 0 (it would only cost memory); under LoRA the
+        # reference is the same network with its adapters switched off (see reference_logprobs).
         ref_model = models.load_policy(cfg.model, seed=cfg.seed).to(accelerator.device)
         ref_model.requires_grad_(False)
+    trainable = [p for p in model.parameters() if p.requires_grad]  # all, or LoRA's adapters
     if cfg.optimizer == "adamw_8bit":  # availability checked by Config.validate
         import bitsandbytes as bnb
-        optimizer = bnb.optim.AdamW8bit(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        optimizer = bnb.optim.AdamW8bit(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay)
     else:
-        optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        optimizer = torch.optim.AdamW(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay)
     warmup = max(cfg.warmup_steps, 0)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda step: min(1.0, (step + 1) / (warmup + 1)) if warmup else 1.0)
-    model, optimizer = accelerator.prepare(model, optimizer)
-    generator = torch.Generator(device=accelerator.device).manual_seed(cfg.seed)
+    # No DistributedDataParallel wrapper, even with several processes: grpo_step adds the
+    # processes' gradients itself (one all-reduce per update), which also keeps the shared-prompt
+    # forward (two model calls per backward) simple. evaluation_mode still places the model on
+    # the device and applies the mixed-precision autocast to its forward.
+    model = accelerator.prepare_model(model, evaluation_mode=True)
+    optimizer = accelerator.prepare_optimizer(optimizer)
+    # one sampling stream per process (process 0's is the single-process run's)
+    generator = torch.Generator(device=accelerator.device).manual_seed(
+        cfg.seed + 1_000_003 * accelerator.process_index)
     return Policy(cfg=cfg, model=model, tokenizer=tokenizer, optimizer=optimizer,
                   scheduler=scheduler, accelerator=accelerator,
                   eos_ids=models.eos_token_ids(accelerator.unwrap_model(model), tokenizer),
-                  generator=generator, ref_model=ref_model)
+                  generator=generator, ref_model=ref_model,
+                  kl_schedule=losses.RewardAwareKL(cfg.kl_coef) if cfg.kl_schedule == "reward_aware" else None)
 
 
 def batch_for_step(step: int, prompts: list[data.Prompt], cfg: Config) -> list[data.Prompt]:
@@ -265,10 +371,20 @@ def batch_for_step(step: int, prompts: list[data.Prompt], cfg: Config) -> list[d
     return [prompts[int(order[k % len(prompts)])] for k in range(index * B, (index + 1) * B)]
 
 
-def _trainer_state(policy: Policy, step: int) -> dict:
+def _generator_states(policy: Policy) -> torch.Tensor:
+    """Every process's sampling-generator state, one row per process (called by all of them)."""
+    state = policy.generator.get_state()
+    acc = policy.accelerator
+    if acc.num_processes == 1:
+        return state[None]
+    return acc.gather(state.to(acc.device)[None]).cpu()
+
+
+def _trainer_state(policy: Policy, step: int, generators: torch.Tensor) -> dict:
     return dict(step=step, optimizer=policy.optimizer.state_dict(),
-                scheduler=policy.scheduler.state_dict(), generator=policy.generator.get_state(),
+                scheduler=policy.scheduler.state_dict(), generator=generators,
                 torch_rng=torch.get_rng_state(), counters=dict(policy.counters),
+                kl_schedule=policy.kl_schedule.state_dict() if policy.kl_schedule else None,
                 config=policy.cfg.to_dict())
 
 
@@ -287,18 +403,31 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
 
     policy = setup(cfg, init_from=found)
+    # With several processes (accelerate launch) all of them train; only the main one evaluates
+    # and writes files (the model is the same on every process after each step).
+    main = policy.accelerator.is_main_process
     log = checkpoint.MetricsLog(run_dir / "metrics.jsonl")
     start_step = 0
     if state:
         policy.optimizer.load_state_dict(state["optimizer"])
         policy.scheduler.load_state_dict(state["scheduler"])
-        policy.generator.set_state(state["generator"])
+        generators = state["generator"]
+        if generators.dim() == 1:  # a checkpoint written before states were kept per process
+            generators = generators[None]
+        if len(generators) != policy.accelerator.num_processes:
+            raise checkpoint.CheckpointError(
+                f"the checkpoint in {found} was written by {len(generators)} process(es); resume "
+                f"it with the same number ({policy.accelerator.num_processes} now)")
+        policy.generator.set_state(generators[policy.accelerator.process_index].clone())
         torch.set_rng_state(state["torch_rng"])
         policy.counters.update(state["counters"])
+        if policy.kl_schedule:
+            policy.kl_schedule.load_state_dict(state["kl_schedule"])
         start_step = state["step"]
-        log.truncate_after(start_step)
-        print(f"[course_utils] resumed from {found} at step {start_step}")
-    elif log.path.exists():
+        if main:
+            log.truncate_after(start_step)
+            print(f"[course_utils] resumed from {found} at step {start_step}")
+    elif log.path.exists() and main:
         log.path.unlink()  # a fresh run in an old directory starts a fresh log
 
     train_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=False)
@@ -307,7 +436,7 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
 
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if (state and summary_path.exists()) else {}
-    if "before" not in summary:
+    if "before" not in summary and main:
         summary["before"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg,
                                             policy.eos_ids, greedy=mode == "greedy")
                              for mode in ("sampled", "greedy")}
@@ -316,19 +445,24 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
 
     total = cfg.total_steps
     bar = tqdm(range(start_step, total), initial=start_step, total=total, desc="GRPO",
-               disable=not progress)
+               disable=not (progress and main))
     for step in bar:
         metrics = grpo_step(policy, batch_for_step(step, train_prompts, cfg))
         record = dict(step=step + 1, epoch=step // cfg.steps_per_epoch, **metrics)
-        if cfg.eval_every and (step + 1) % cfg.eval_every == 0 and step + 1 < total:
+        if cfg.eval_every and (step + 1) % cfg.eval_every == 0 and step + 1 < total and main:
             ev = evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids, greedy=False)
             record.update({f"eval_{k}": v for k, v in ev.items() if k != "samples"})
-        log.append(record)
+        if main:
+            log.append(record)
         bar.set_postfix(reward=f"{metrics['reward_mean']:.3f}", len_ok=f"{metrics['pass_length']:.2f}",
                         both=f"{metrics['pass_both']:.2f}")
         if (step + 1) % cfg.save_every == 0 or step + 1 == total:
-            checkpoint.save(run_dir, policy.accelerator.unwrap_model(model), policy.tokenizer,
-                            _trainer_state(policy, step + 1))
+            generators = _generator_states(policy)  # a collective: every process takes part
+            if main:
+                checkpoint.save(run_dir, policy.accelerator.unwrap_model(model), policy.tokenizer,
+                                _trainer_state(policy, step + 1, generators))
+    if not main:
+        return {}
 
     summary["after"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids,
                                        greedy=mode == "greedy") for mode in ("sampled", "greedy")}

@@ -15,7 +15,7 @@ def resident_gib() -> float:
         return int(f.read().split()[1]) * 4096 / 1024 ** 3
 
 
-def main(prompts: int, group_size: int, prompt_len: int, completion_len: int) -> None:
+def main(prompts: int, group_size: int, prompt_len: int, completion_len: int, lora_rank: int = 0) -> None:
     torch.set_num_threads(2)
     config = Qwen2Config(vocab_size=151_936, hidden_size=896, intermediate_size=4864,
                          num_hidden_layers=24, num_attention_heads=14, num_key_value_heads=2,
@@ -23,7 +23,11 @@ def main(prompts: int, group_size: int, prompt_len: int, completion_len: int) ->
     baseline = resident_gib()
     torch.manual_seed(0)
     model = Qwen2ForCausalLM(config).eval()
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-5, weight_decay=0.01)
+    if lora_rank:
+        from course_utils.models import add_lora
+        model = add_lora(model, lora_rank, 2 * lora_rank)
+    optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-5,
+                                  weight_decay=0.01)
     rows = prompts * group_size
     prompt_ids = torch.randint(0, config.vocab_size, (prompts, prompt_len)).repeat_interleave(group_size, 0)
     completion_ids = torch.randint(0, config.vocab_size, (rows, completion_len))
@@ -42,4 +46,4 @@ def main(prompts: int, group_size: int, prompt_len: int, completion_len: int) ->
 
 
 if __name__ == "__main__":
-    main(*[int(a) for a in sys.argv[1:5]])
+    main(*[int(a) for a in sys.argv[1:6]])

@@ -216,3 +216,20 @@ def test_grpo_loss_kl_and_entropy_terms_by_hand():
     assert loss.item() == pytest.approx((0.1 * kl0 - 0.01 * 1.0 - 0.01 * 2.0) / 2)
     with pytest.raises(ValueError, match="ref_logprobs"):
         losses.grpo_loss(logp, logp, torch.tensor([0.0]), mask, beta=0.1)
+
+
+def test_reward_aware_kl_by_hand():
+    kl = losses.RewardAwareKL(beta=0.1, clip_range=4.0, momentum=0.9, eps=1e-12)
+    wide = torch.tensor([0.0, 1.0, 0.0, 1.0])            # variance 0.25
+    assert kl.coefficient(wide) == pytest.approx(0.1)     # first batch: its own average
+    narrow = torch.tensor([0.0, 0.5, 0.0, 0.5])          # variance 0.0625
+    avg = 0.9 * 0.25 + 0.1 * 0.0625
+    assert kl.coefficient(narrow) == pytest.approx(0.1 * avg / 0.0625)   # less signal: pull harder
+    kl.observe_gradient(1.0)
+    kl.observe_gradient(2.0)                              # grad average 1.1, last 2.0
+    avg = 0.9 * avg + 0.1 * 0.25
+    assert kl.coefficient(wide) == pytest.approx(0.1 * (avg / 0.25) * (2.0 / 1.1))
+    flat = torch.zeros(4)                                 # no spread at all: the clip, not inf
+    assert kl.coefficient(flat) == pytest.approx(0.4)
+    kl.observe_gradient(float("nan"))                     # a skipped step does not poison it
+    assert kl.last_grad == 2.0

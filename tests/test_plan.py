@@ -39,6 +39,19 @@ def test_memory_plan_within_15_percent_of_the_measured_cpu_peak(prompts, group, 
     assert abs(predicted - measured) / measured < 0.15, (predicted / plan.GiB, measured / plan.GiB)
 
 
+def test_lora_memory_plan_within_25_percent_of_the_measured_cpu_peak():
+    """LoRA (rank 16) at the larger shape. The estimate is rougher here (measured 10.78 GiB,
+    planned 8.53): under full fine-tuning part of the transient is covered by gradient memory
+    that is counted as persistent but not yet allocated at the peak; under LoRA nothing covers
+    it. The bound is wider to say so; the plan stays a guide, not a guarantee, for LoRA."""
+    out = subprocess.run([sys.executable, str(PROBE), "3", "8", "128", "40", "16"],
+                         capture_output=True, text=True, timeout=600, check=True)
+    measured = json.loads(out.stdout.strip().splitlines()[-1])["peak_gib"] * plan.GiB
+    cfg = _cfg(prompts_per_step=3, group_size=8, lora_rank=16)
+    predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, 128, 40))
+    assert abs(predicted - measured) / measured < 0.25, (predicted / plan.GiB, measured / plan.GiB)
+
+
 def test_memory_plan_terms_respond_to_the_options():
     base = plan.memory_plan(plan.QWEN25_05B, _cfg(), 128, 32)
     assert base["reference model"] == 0 and base["autocast weight copies"] == 0
@@ -50,6 +63,10 @@ def test_memory_plan_terms_respond_to_the_options():
     from course_utils.config import Config
     eight_bit = plan.memory_plan(plan.QWEN25_05B, Config(optimizer="adamw_8bit"), 128, 32)
     assert eight_bit["optimizer state"] == 2 * plan.QWEN25_05B.n_params  # not validated: no GPU here
+    lora = plan.memory_plan(plan.QWEN25_05B, _cfg(lora_rank=16, kl_coef=0.04), 128, 32)
+    assert lora["gradients"] == 4 * plan.QWEN25_05B.lora_params(16) == 4 * 8_798_208
+    assert lora["reference model"] == 0              # the base with adapters off
+    assert lora["optimizer state"] < whole["optimizer state"] / 50
     ckpt = plan.memory_plan(plan.QWEN25_05B, _cfg(gradient_checkpointing=True), 128, 32)
     assert ckpt["activations"] < whole["activations"] / 4
 

@@ -85,23 +85,81 @@ def test_entropy_returned_with_logprobs(tiny_model, tokenizer, gen):
     assert token_entropy(torch.zeros(1, 1, 4)).item() > 1.38
 
 
-def test_shared_prompt_forward_matches_the_full_forward_in_value_and_gradient(tiny_model, tokenizer):
-    # prompts of different lengths (so left padding is exercised), G = 3
+def _plain_logprobs(model, prompt_ids, prompt_mask, completion_ids, completion_mask):
+    """The textbook computation, independent of the library's: one forward over every full
+    sequence, logits at every position, log-softmax, pick the completion tokens."""
+    ids = torch.cat([prompt_ids, completion_ids], -1)
+    att = torch.cat([prompt_mask, completion_mask], -1)
+    pos = (att.cumsum(-1) - 1).clamp(min=0)
+    logits = model(input_ids=ids, attention_mask=att, position_ids=pos).logits
+    P, T = prompt_ids.shape[1], completion_ids.shape[1]
+    logp = torch.log_softmax(logits[:, P - 1:P + T - 1].float(), -1)
+    return logp.gather(-1, completion_ids[..., None]).squeeze(-1) * completion_mask
+
+
+def test_shared_prompt_and_chunked_forward_match_the_plain_forward_in_value_and_gradient(tiny_model, tokenizer):
+    # prompts of different lengths (so left padding is exercised), G = 3, and completions of
+    # different lengths (so chunks are cut to different lengths)
     ro = R.rollout(tiny_model, tokenizer, ["Hi", "A much longer prompt about the weather in the spring"],
                    group_size=3, max_new_tokens=6, eos_ids=[tokenizer.eos_token_id],
                    generator=torch.Generator().manual_seed(3))
+    lengths = torch.tensor([6, 1, 3, 6, 2, 4])[:, None]
+    mask = (torch.arange(ro.completion_ids.shape[1])[None] < lengths).long() * ro.completion_mask
+    assert len(set(mask.sum(-1).tolist())) > 3
     weights = torch.randn(ro.completion_ids.shape, generator=torch.Generator().manual_seed(4))
-    results = []
+
+    def value_and_grad(fn):
+        tiny_model.zero_grad()
+        lp = fn()
+        (lp * weights * mask).sum().backward()
+        return lp.detach() * mask, torch.cat([p.grad.flatten() for p in tiny_model.parameters()])
+
+    plain = value_and_grad(lambda: _plain_logprobs(tiny_model, ro.prompt_ids, ro.prompt_mask,
+                                                   ro.completion_ids, mask))
+    for G, chunk in [(1, 8), (1, 2), (3, 8), (3, 2), (3, 1)]:
+        got = value_and_grad(lambda: R.completion_logprobs(
+            tiny_model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids, mask, group_size=G,
+            rows_per_chunk=chunk)[0])
+        assert (got[0] - plain[0]).abs().max() < 1e-5, (G, chunk)
+        rel = (got[1] - plain[1]).norm() / plain[1].norm()
+        assert rel < 1e-4, (G, chunk, rel)
+    # and the entropy's gradient through the shared prompt
+    ents = []
     for G in (1, 3):
         tiny_model.zero_grad()
-        lp, ent = R.completion_logprobs(tiny_model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
-                                        ro.completion_mask, with_entropy=True, entropy_grad=True,
-                                        group_size=G)
-        ((lp * weights + ent) * ro.completion_mask).sum().backward()
-        grad = torch.cat([p.grad.flatten() for p in tiny_model.parameters()])
-        results.append((lp.detach() * ro.completion_mask, grad))
-    (lp_full, g_full), (lp_shared, g_shared) = results
-    assert (lp_full - lp_shared).abs().max() < 1e-5
-    rel = (g_full - g_shared).norm() / g_full.norm()
-    assert rel < 1e-4, rel
+        _, ent = R.completion_logprobs(tiny_model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
+                                       mask, with_entropy=True, entropy_grad=True, group_size=G,
+                                       rows_per_chunk=2)
+        (ent * mask).sum().backward()
+        ents.append(torch.cat([p.grad.flatten() for p in tiny_model.parameters()]))
+    assert (ents[0] - ents[1]).norm() / ents[0].norm() < 1e-4
     tiny_model.zero_grad()
+
+
+def test_rows_that_stop_leave_the_decoding_batch_without_changing_the_others(tiny_model, tokenizer):
+    """Rows stop at different steps and are dropped from the batch and the cache. Greedy
+    decoding must then give, row by row, what each prompt gives alone; sampled
+    log-probabilities must still be the training forward's."""
+    prompts = ["Hello there", "A much longer prompt about the weather in the spring", "Why"]
+    free = R.rollout(tiny_model, tokenizer, prompts, group_size=1, max_new_tokens=10,
+                     eos_ids=[tokenizer.eos_token_id], greedy=True).completion_ids
+    # stop ids taken from the free-running greedy output, so the rows end early and at different
+    # steps; plus a third of the vocabulary, so sampled rows stop at different steps too
+    stop = sorted({int(free[0, 1]), int(free[2, 4])} | set(range(0, len(tokenizer), 3)))
+    together = R.rollout(tiny_model, tokenizer, prompts, group_size=1, max_new_tokens=10,
+                         eos_ids=stop, greedy=True)
+    lengths = together.lengths.tolist()
+    assert len(set(lengths)) > 1, lengths     # rows did stop at different steps
+    for i, prompt in enumerate(prompts):
+        alone = R.rollout(tiny_model, tokenizer, [prompt], group_size=1, max_new_tokens=10,
+                          eos_ids=stop, greedy=True)
+        n = int(alone.lengths[0])
+        assert n == lengths[i] and torch.equal(alone.completion_ids[0, :n], together.completion_ids[i, :n])
+    ro = R.rollout(tiny_model, tokenizer, prompts, group_size=4, max_new_tokens=10, eos_ids=stop,
+                   generator=torch.Generator().manual_seed(5))
+    assert len(set(ro.lengths.tolist())) > 2
+    with torch.no_grad():
+        lp, _ = R.completion_logprobs(tiny_model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
+                                      ro.completion_mask, group_size=4)
+    assert ((lp - ro.logprobs) * ro.completion_mask).abs().max() < 1e-4
+    assert (ro.logprobs[ro.completion_mask == 0] == 0).all()
