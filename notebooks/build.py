@@ -65,6 +65,19 @@ def cpu_results_markdown() -> str:
     return "\n".join(parts)
 
 
+def track_results_markdown(name: str) -> str:
+    """A learner track's stored real CPU result (``python -m course_utils.tracks``), with its plot."""
+    folder = RESULTS / "tracks" / name
+    if not (folder / "report.md").exists():
+        raise ValueError(f"no results for track {name!r} in {folder}: run "
+                         f"python -m course_utils.tracks {name}")
+    text = (folder / "report.md").read_text().strip()
+    if (folder / "curves.png").exists():
+        image = f"https://raw.githubusercontent.com/{GITHUB_REPO}/main/notebooks/results/tracks/{name}/curves.png"
+        text += f"\n\n![{name}: curves, mean over seeds and range]({image})"
+    return text
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -111,12 +124,14 @@ def render(source: Path, learner: bool) -> dict[str, str]:
                 f"first, the checkers tell you what is wrong.*")
     else:
         note = "*This is the solution flavour of the lesson: every exercise is filled in.*"
+    for name in re.findall(r"\{\{TRACK_RESULTS:(\w+)\}\}", text):
+        text = fill_markdown(text, f"TRACK_RESULTS:{name}", track_results_markdown(name))
     if "{{CPU_RESULTS}}" in text:
         text = fill_markdown(text, "CPU_RESULTS", cpu_results_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
-    leftover = re.findall(r"\{\{[A-Z_]+\}\}", text)
+    leftover = re.findall(r"\{\{[A-Z_:a-z]+\}\}", text)
     if leftover:
         raise ValueError(f"{source.name}: unknown placeholder(s) {leftover}")
     nb = jupytext.reads(text, fmt="py:percent")

@@ -35,6 +35,12 @@ def test_t4_preset_needs_a_gpu_for_fp16_and_says_so():
     (dict(max_steps=0), "max_steps", ">= 1"),
     (dict(advantage_scale="global"), "advantage_scale", "group, batch, none"),
     (dict(kl_coef=-0.1), "kl_coef", ">= 0"),
+    (dict(lora_rank=-4), "lora_rank", ">= 0"),
+    (dict(lora_rank=8, lora_alpha=0.0), "lora_alpha", "> 0"),
+    (dict(kl_schedule="reward_aware"), "kl_schedule", "kl_coef > 0"),
+    (dict(kl_schedule="cosine"), "kl_schedule", "constant, reward_aware"),
+    (dict(save_every=0), "save_every", ">= 1"),
+    (dict(max_grad_norm=0.0), "max_grad_norm", "> 0"),
 ])
 def test_invalid_values_name_the_field_and_the_allowed_range(overrides, field, allowed):
     with pytest.raises(ConfigError) as err:

