@@ -84,6 +84,7 @@ def plot_curves(arms: dict[str, list[Path]], keys: list[tuple[str, str]], path: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(1, len(keys), figsize=(4.3 * len(keys), 3.0), squeeze=False)
     for ax, (key, title) in zip(axes[0], keys):
         for arm, dirs in arms.items():
