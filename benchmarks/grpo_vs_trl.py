@@ -31,7 +31,6 @@ import platform
 import statistics
 import tempfile
 import time
-import types
 import warnings
 
 import torch
