@@ -57,6 +57,17 @@ def summary(run_dir: Path) -> dict:
     return json.loads((run_dir / "summary.json").read_text())
 
 
+def final_rewards(arms: dict[str, list[Path]]) -> dict[str, list[float]]:
+    """Per arm, the held-out greedy mean reward after training, one value per seed."""
+    return {arm: [summary(d)["after"]["greedy"]["reward_mean"] for d in dirs] for arm, dirs in arms.items()}
+
+
+def sample_reward(sample: dict) -> float:
+    """The shaped reward of one evaluation sample, recomputed from its completion and targets."""
+    check = train.rewards.check(sample["completion"], sample["target_chars"], sample["target_digit_sum"])
+    return train.rewards.shaped_score(check, sample["target_chars"], sample["target_digit_sum"])
+
+
 def mean_std(values: list[float]) -> str:
     if len(values) < 2:
         return f"{values[0]:.3f}"
@@ -175,7 +186,7 @@ def grouping(seeds: list[int], out: Path) -> dict:
                                            advantage_scale="batch") for s in seeds]}
     plot_curves(arms, [("reward_mean", "training reward"), ("chars_abs_error", "|chars - target|"),
                        ("adv_abs_mean", "mean |advantage|")], out / "curves.png")
-    final = {arm: [summary(d)["after"]["greedy"]["reward_mean"] for d in dirs] for arm, dirs in arms.items()}
+    final = final_rewards(arms)
     lines = ["| estimator | cosine to exact gradient | direction error | noise / signal | weight of prompts easy → hard |",
              "|---|---|---|---|---|"]
     for name, row in exact["estimators"].items():
@@ -212,7 +223,7 @@ def entropy(seeds: list[int], out: Path) -> dict:
                        ("entropy", "token entropy"), ("entropy_weight", "entropy weight")],
                 out / "curves.png")
     steps = {arm: [steps_to(d, "reward_mean", REWARD_THRESHOLD) for d in dirs] for arm, dirs in arms.items()}
-    final = {arm: [summary(d)["after"]["greedy"]["reward_mean"] for d in dirs] for arm, dirs in arms.items()}
+    final = final_rewards(arms)
     ent = {arm: [statistics.mean(r["entropy"] for r in records(d)[-4:]) for d in dirs] for arm, dirs in arms.items()}
     rows = [f"| {arm} | {', '.join('never' if math.isinf(x) else str(x) for x in steps[arm])} | "
             f"{mean_std(final[arm])} | {mean_std(ent[arm])} |" for arm in arms]
@@ -262,19 +273,16 @@ def kl_schedule(seeds: list[int], out: Path) -> dict:
     tokenizer = models.load_tokenizer(cfg.model)
     lines = facts()[:4] if smoke_mode() else facts()
     reference = text_loglik(models.load_policy(cfg.model), tokenizer, lines)
-    knowledge, falsifier, final = {}, {}, {}
-    for arm, dirs in arms.items():
-        knowledge[arm] = [text_loglik(models.load_policy(str(d / "checkpoint")), tokenizer, lines) - reference
-                          for d in dirs]
-        final[arm] = [summary(d)["after"]["greedy"]["reward_mean"] for d in dirs]
+    final, falsifier = final_rewards(arms), {}
+    knowledge = {arm: [text_loglik(models.load_policy(str(d / "checkpoint")), tokenizer, lines) - reference
+                       for d in dirs] for arm, dirs in arms.items()}
     for arm in list(arms)[1:]:   # per held-out prompt, greedy reward against plain GRPO, same seed
         worse, total = [], 0
         for plain_dir, dir_ in zip(arms["plain GRPO (no KL)"], arms[arm]):
             a = summary(plain_dir)["after"]["greedy"]["samples"]
             b = summary(dir_)["after"]["greedy"]["samples"]
             for x, y in zip(a, b):
-                rx = train.rewards.shaped_score(train.rewards.check(x["completion"], x["target_chars"], x["target_digit_sum"]), x["target_chars"], x["target_digit_sum"])
-                ry = train.rewards.shaped_score(train.rewards.check(y["completion"], y["target_chars"], y["target_digit_sum"]), y["target_chars"], y["target_digit_sum"])
+                rx, ry = sample_reward(x), sample_reward(y)
                 total += 1
                 if ry < rx - 1e-9:
                     worse.append(dict(snippet=y["snippet"], plain=round(rx, 3), constrained=round(ry, 3)))
