@@ -50,7 +50,9 @@ class Config:
     digit_sum_max: int = _f(15, "largest target digit sum drawn for a prompt (equal to min for "
                                 "prompt_style='raw', where the rule cannot vary)")
     reward: str = _f("binary", "'binary': 1 only if both constraints pass (the recipe); 'shaped': "
-                               "partial credit for being close", ("binary", "shaped"))
+                               "partial credit relative to the target; 'sharp': 2/3 of 'shaped' plus 1/3 of "
+                               "'binary', so a pass pays clearly more than a near miss (rewards.py)",
+                        ("binary", "shaped", "sharp"))
     # --- how much data -----------------------------------------------------------------------
     train_prompts: int = _f(1024, "number of distinct training prompts")
     eval_prompts: int = _f(100, "number of held-out prompts for before/after evaluation")
@@ -86,6 +88,15 @@ class Config:
     clip_eps_low: float = _f(0.2, "lower clip: the ratio is kept above 1 - clip_eps_low")
     clip_eps_high: float = _f(0.2, "upper clip: the ratio is kept below 1 + clip_eps_high "
                                    "(DAPO's clip-higher uses 0.28)")
+    dynamic_sampling: bool = _f(False, "DAPO's dynamic sampling: drop the groups whose G rewards are "
+                                       "all equal (they have no signal) and sample fresh prompts until "
+                                       "the batch holds prompts_per_step groups with signal")
+    max_sampling_rounds: int = _f(4, "dynamic sampling: at most this many rounds of prompts_per_step "
+                                     "prompts per step (the first included); a batch still short "
+                                     "after them is filled with groups without signal")
+    overlong_filter: bool = _f(False, "DAPO's overlong filtering: completions cut off at "
+                                      "max_new_tokens (no EOS) get no loss, since their reward "
+                                      "judges text the policy did not finish")
     kl_coef: float = _f(0.0, "beta, weight of the k3 KL to the reference model; 0 loads no "
                              "reference model")
     kl_schedule: str = _f("constant", "course extension: 'reward_aware' scales kl_coef each step by "
@@ -190,6 +201,8 @@ class Config:
         need(self.prompt_style == "chat" or self.digit_sum_min == self.digit_sum_max,
              "digit_sum_max", "must equal digit_sum_min when prompt_style='raw': a base model "
              "is never told the target, so it has to be the same for every prompt")
+        need(isinstance(self.max_sampling_rounds, int) and self.max_sampling_rounds >= 1,
+             "max_sampling_rounds", "must be an integer >= 1")
         need(self.eval_every >= 0, "eval_every", "must be >= 0")
         need(self.save_every >= 1, "save_every", "must be >= 1")
         need(self.precision != "fp16" or _cuda_available(), "precision",
@@ -220,26 +233,34 @@ PRESETS: dict[str, dict[str, Any]] = {
     # The seed's recipe on a free Colab T4, corrected per the errata (per-prompt groups). Sized
     # by course_utils.plan: micro-batches of 2 prompts x 8 completions keep the peak near 12 GiB
     # of the T4's 15; 10,240 prompts are ~1.3 h at the plan's rate, a 2x margin on its
-    # assumptions inside a 3-hour session (lesson 5 prints the arithmetic). Shaped reward: with
-    # the binary one, groups that all fail give no gradient (lesson 5's CPU runs: 40 of 40 steps).
+    # assumptions inside a 3-hour session (lesson 5 prints the arithmetic). It carries lesson
+    # 5's fixes: the sharp reward (with the binary one, groups that all fail give no gradient;
+    # with the shaped one, the policy settles on a near-miss template) and dynamic sampling.
+    # No entropy bonus (lesson 6 found the seed's inverse-variance bonus did not help) and
+    # kl_coef 0: a KL term slowed learning in the course's CPU runs, costs a reference forward
+    # per step, and DAPO drops it too; add one (kl_coef=0.04) if the model's language degrades.
     "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
-               target_chars=64, reward="shaped", prompts_per_step=16, group_size=8, grad_accum=8,
-               max_new_tokens=64, lr=1e-5, weight_decay=0.01, max_grad_norm=1.0,
-               entropy_bonus="inverse_variance", entropy_coef=1e-3, precision="fp16",
-               gradient_checkpointing=True, train_prompts=10240, epochs=1, eval_prompts=100,
-               save_every=25, out_dir="runs/t4"),
+               target_chars=64, reward="sharp", dynamic_sampling=True, prompts_per_step=16,
+               group_size=8, grad_accum=8, max_new_tokens=64, lr=1e-5, weight_decay=0.01,
+               max_grad_norm=1.0, kl_coef=0.0, precision="fp16", gradient_checkpointing=True,
+               train_prompts=10240, epochs=1, eval_prompts=100, save_every=25, out_dir="runs/t4"),
     # The seed's CS-student variant: a base model, so the rule is fixed rather than stated.
     "gpt2-rtx4070": dict(model="gpt2", prompt_source="openwebtext", prompt_style="raw",
                          prompt_tokens=128, target_chars=32, digit_sum_min=10, digit_sum_max=10,
                          reward="binary", prompts_per_step=8, group_size=8, max_new_tokens=32,
                          lr=1e-5, precision="bf16", train_prompts=2048, eval_prompts=100,
                          save_every=20, out_dir="runs/gpt2-rtx4070"),
-    # Real learning on 2 CPU cores in about 10 minutes, with the embedded SmolLM2 offline.
+    # The main job: real learning on 2 CPU cores in under 15 minutes, with the embedded SmolLM2
+    # offline. Lesson 5, section 6: the sharp reward (the shaped one gets hacked by a near-miss
+    # template) and dynamic sampling, bounded at 2 rounds because once the policy has settled
+    # most groups have no signal and more rounds only cost generation. 24 new tokens leave
+    # room for 32 characters (about 8 tokens) and keep the first, long completions cheap.
+    # 48 steps of a 256-prompt epoch: the budget of 15 minutes, install included.
     "cpu": dict(model="smollm2-135m-instruct", prompt_source="offline", prompt_tokens=32,
-                target_chars=32, digit_sum_min=3, digit_sum_max=12, reward="shaped",
-                prompts_per_step=4, group_size=8, max_new_tokens=32, lr=3e-5,
-                train_prompts=160, epochs=1, eval_prompts=64, save_every=10,
-                out_dir="runs/cpu"),
+                target_chars=32, digit_sum_min=3, digit_sum_max=12, reward="sharp",
+                dynamic_sampling=True, max_sampling_rounds=2, prompts_per_step=4, group_size=8,
+                max_new_tokens=24, lr=6e-5, train_prompts=256, max_steps=48, epochs=1,
+                eval_prompts=64, save_every=10, out_dir="runs/cpu"),
     # Seconds, for CI: a random-weight tiny model, a handful of everything.
     "smoke": dict(model="tiny-qwen2", prompt_source="offline", prompt_tokens=16, target_chars=48,
                   digit_sum_min=3, digit_sum_max=9, reward="shaped", prompts_per_step=2,

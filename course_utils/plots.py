@@ -9,11 +9,13 @@ from pathlib import Path
 OPTIONAL = {"entropy_weight", "kl"}
 PANELS = [  # (title, [(metric key, label)])
     ("reward", [("reward_mean", "mean reward")]),
-    ("pass rates", [("pass_length", "length"), ("pass_digits", "digit sum"), ("pass_both", "both")]),
+    ("pass rates", [("pass_length", "length"), ("pass_digits", "digit sum"), ("pass_both", "both"),
+                    ("first_round_pass_both", "both, before dynamic sampling's selection")]),
     ("distance to target length (chars)", [("chars_abs_error", "mean |chars - target|")]),
     ("completion length (tokens)", [("completion_tokens", "mean")]),
     ("advantages", [("adv_abs_mean", "mean |A|"), ("adv_std", "std A")]),
-    ("groups without signal", [("zero_std_frac", "zero-std groups"), ("truncated_frac", "truncated")]),
+    ("groups without signal", [("zero_std_frac", "zero-std groups"), ("truncated_frac", "truncated"),
+                               ("distinct_frac", "distinct completions (share)")]),
     ("entropy", [("entropy", "token entropy")]),
     ("entropy weight (extension)", [("entropy_weight", "weight")]),
     ("KL to reference / clipping", [("kl", "k3 KL"), ("clip_fraction", "clip fraction")]),

@@ -140,7 +140,37 @@ def digit_sum_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwarg
     return [float(r.digits_ok) for r in check_all(completions, **kwargs)]
 
 
-REWARDS = {"binary": binary_reward, "shaped": shaped_reward}
+def sharp_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
+    """Partial credit in (0, 1] that pays a pass clearly more than any near miss:
+
+    sharp = 2/3 * shaped_score + 1/3 * (1 if both constraints pass else 0)
+
+    Before any completion passes, this is ``shaped_score`` times 2/3, and GRPO's group
+    standardization removes a common factor: the advantages, and so the whole early run, are
+    those of the shaped reward, which quickly teaches short answers near the target. Once
+    passes turn up, each one earns a third of the whole score more than the best near miss, a
+    large advantage inside its group. With ``shaped_score`` alone, a template two characters
+    short keeps 0.97 of the score, and the 0.03 it loses against a pass is small next to the
+    spread of the digit credits in a group, so the policy settles two characters short
+    (lesson 5's reward-hacking run).
+
+    Designs that failed in the course's runs, and why (lesson 5, section 6): a bonus for the
+    exact length alone made the policy lock onto the first 32-character sentence it found,
+    whatever its digit sum; a bonus for the exact digit sum made writing the digit alone the
+    easiest thing to learn. The score is 1 exactly when ``binary_reward`` is 1.
+    """
+    return 2.0 / 3.0 * shaped_score(result, target_chars, target_digit_sum) + \
+        1.0 / 3.0 * float(result.passed)
+
+
+def sharp_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """Partial credit that pays an exact hit clearly more than a near miss (``sharp_score``)."""
+    n = len(completions)
+    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
+    return [sharp_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+
+
+REWARDS = {"binary": binary_reward, "shaped": shaped_reward, "sharp": sharp_reward}
 
 
 def get_reward_fn(name: str):

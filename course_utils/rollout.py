@@ -34,6 +34,43 @@ class Rollout:
     def lengths(self) -> torch.Tensor:
         return self.completion_mask.sum(-1)
 
+    def select_groups(self, groups: list[int]) -> "Rollout":
+        """The rows of some prompts' groups, in the order given (whole groups only)."""
+        G = self.group_size
+        rows = torch.tensor([g * G + j for g in groups for j in range(G)], dtype=torch.long,
+                            device=self.completion_ids.device)
+        pick = lambda t: t.index_select(0, rows)
+        return Rollout(prompt_ids=pick(self.prompt_ids), prompt_mask=pick(self.prompt_mask),
+                       completion_ids=pick(self.completion_ids),
+                       completion_mask=pick(self.completion_mask), logprobs=pick(self.logprobs),
+                       texts=[self.texts[int(r)] for r in rows], truncated=pick(self.truncated),
+                       group_size=G)
+
+
+def concat_rollouts(parts: list[Rollout], pad_id: int) -> Rollout:
+    """Rollouts sampled separately, as one batch: prompts left-padded to the longest prompt,
+    completions right-padded to the longest completion (padding is masked, so values and
+    gradients are those of each part alone; ``tests/test_rollout.py`` checks this)."""
+    if len({p.group_size for p in parts}) != 1:
+        raise ValueError("rollouts with different group sizes cannot be joined")
+    P = max(p.prompt_ids.shape[1] for p in parts)
+    T = max(p.completion_ids.shape[1] for p in parts)
+
+    def left(t: torch.Tensor, value) -> torch.Tensor:
+        return F.pad(t, (P - t.shape[1], 0), value=value)
+
+    def right(t: torch.Tensor, value) -> torch.Tensor:
+        return F.pad(t, (0, T - t.shape[1]), value=value)
+
+    return Rollout(prompt_ids=torch.cat([left(p.prompt_ids, pad_id) for p in parts]),
+                   prompt_mask=torch.cat([left(p.prompt_mask, 0) for p in parts]),
+                   completion_ids=torch.cat([right(p.completion_ids, pad_id) for p in parts]),
+                   completion_mask=torch.cat([right(p.completion_mask, 0) for p in parts]),
+                   logprobs=torch.cat([right(p.logprobs, 0.0) for p in parts]),
+                   texts=[t for p in parts for t in p.texts],
+                   truncated=torch.cat([p.truncated for p in parts]),
+                   group_size=parts[0].group_size)
+
 
 def completion_mask(completion_ids: torch.Tensor, eos_ids: list[int]) -> torch.Tensor:
     """1 on every token up to and including the first EOS, 0 after it.

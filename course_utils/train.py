@@ -25,7 +25,7 @@ import torch
 
 from . import checkpoint, data, losses, models, rewards
 from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
-from .rollout import completion_logprobs, rollout
+from .rollout import completion_logprobs, concat_rollouts, rollout
 
 
 class RewardError(ValueError):
@@ -100,9 +100,18 @@ def evaluate(model, tokenizer, prompts: list[data.Prompt], cfg: Config, eos_ids:
         texts.extend(out.texts)
     s = score(prompts, texts, cfg.reward)
     checks = [rewards.check(t, p.target_chars, p.target_digit_sum) for t, p in zip(texts, prompts)]
+    # A one-digit target can be met by copying it from the instruction; a two-digit one (10-12
+    # in the cpu preset) needs digits that add up to it, which is harder, so report both kinds.
+    one_digit = torch.tensor([p.target_digit_sum <= 9 for p in prompts])
+    split = {f"pass_both_{kind}": float(s["passed"][sel].mean()) if sel.any() else float("nan")
+             for kind, sel in (("one_digit", one_digit), ("two_digit", ~one_digit))}
     return dict(
         reward_mean=float(s["rewards"].mean()), pass_length=float(s["length_ok"].mean()),
-        pass_digits=float(s["digits_ok"].mean()), pass_both=float(s["passed"].mean()),
+        pass_digits=float(s["digits_ok"].mean()), pass_both=float(s["passed"].mean()), **split,
+        n_one_digit=int(one_digit.sum()), n_two_digit=int((~one_digit).sum()),
+        # a policy that writes one template for every snippet passes the checker without
+        # continuing the text; the checker cannot see that, this count can
+        distinct_completions=len(set(texts)), distinct_snippets=len({p.snippet for p in prompts}),
         chars_abs_error=float(s["chars_abs_error"].mean()),
         samples=[dict(snippet=p.snippet[-60:], target_chars=p.target_chars,
                       target_digit_sum=p.target_digit_sum, completion=t, n_chars=c.n_chars,
@@ -178,16 +187,76 @@ def _all_reduce_gradients(policy: Policy) -> None:
             torch.distributed.all_reduce(param.grad, op=torch.distributed.ReduceOp.SUM)
 
 
-def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
+def _has_signal(rewards: torch.Tensor, group_size: int) -> list[bool]:
+    """Per group: do its G rewards differ? A group of equal rewards has advantage 0 everywhere."""
+    r = rewards.view(-1, group_size)
+    return (r.max(-1).values > r.min(-1).values).tolist()
+
+
+def sample_batch(policy: Policy, prompts: list[data.Prompt],
+                 refill: typing.Callable[[int], list[data.Prompt]] | None = None):
+    """Sample G completions for each prompt; with ``cfg.dynamic_sampling`` (DAPO), keep only
+    the groups with signal and sample further rounds of prompts from ``refill(round)`` until
+    ``len(prompts)`` such groups are found or ``max_sampling_rounds`` rounds have run. A batch
+    still short is filled with the first rounds' groups without signal, so the batch size (and
+    with it every normalization in the loss) never changes.
+
+    Returns (rollout, the prompts it continues, groups sampled in all, rounds run, the first
+    round's pass rate). The batch trained on is *selected*, so its pass rate is not the
+    policy's; the first round's, sampled before any selection, is.
+    """
+    cfg = policy.cfg
+    G = cfg.group_size
+
+    def sample(batch):
+        ro = rollout(policy.model, policy.tokenizer, [p.text for p in batch], group_size=G,
+                     max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
+                     temperature=cfg.temperature, generator=policy.generator)
+        return ro, score([p for p in batch for _ in range(G)], ro.texts, cfg.reward)
+
+    ro, scores = sample(prompts)
+    rewards, first_pass = scores["rewards"], float(scores["passed"].mean())
+    if not cfg.dynamic_sampling:
+        return ro, prompts, len(prompts), 1, first_pass
+    if refill is None:
+        raise ValueError("dynamic_sampling needs a source of fresh prompts (refill)")
+    B = len(prompts)
+    kept, spare = [], []   # (rollout, group index, prompt): groups with and without signal
+    rounds, sampled = 0, 0
+    batch = prompts
+    while True:
+        rounds += 1
+        sampled += len(batch)
+        for g, signal in enumerate(_has_signal(rewards, G)):
+            (kept if signal else spare).append((ro, g, batch[g]))
+        if len(kept) >= B or rounds == cfg.max_sampling_rounds:
+            break
+        batch = refill(rounds)
+        ro, scores = sample(batch)
+        rewards = scores["rewards"]
+    chosen = (kept + spare)[:B]
+    parts = [part.select_groups([g]) for part, g, _ in chosen]
+    return (concat_rollouts(parts, policy.tokenizer.pad_token_id), [p for _, _, p in chosen],
+            sampled, rounds, first_pass)
+
+
+def grpo_step(policy: Policy, prompts: list[data.Prompt],
+              refill: typing.Callable[[int], list[data.Prompt]] | None = None) -> dict:
     """Sample, score, and update once on ``prompts`` (the global batch). Returns the metrics.
 
     With several processes (``accelerate launch``), process k samples and trains prompts
     k*B/W ... (k+1)*B/W - 1: whole groups, so per-group statistics are exact. Rewards are
     gathered from every process before the advantages and the entropy weight are computed, so
     batch-level options see the whole batch too, and every count in the loss is global.
+
+    ``refill(round)`` gives fresh prompts for dynamic sampling (``cfg.dynamic_sampling``);
+    ``train`` draws them from a stream seeded by the step, so a resumed run sees the same ones.
     """
     cfg, model, acc = policy.cfg, policy.model, policy.accelerator
     G, W, rank = cfg.group_size, acc.num_processes, acc.process_index
+    if cfg.dynamic_sampling and W > 1:
+        raise ValueError("dynamic_sampling runs in one process only: each process would keep "
+                         "different groups; launch without accelerate, or turn it off")
     if len(prompts) % W:
         raise ValueError(f"{len(prompts)} prompts per step cannot be split over {W} processes: "
                          f"set prompts_per_step to a multiple of {W}")
@@ -200,9 +269,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
     timer = PhaseTimer()
     t0 = time.perf_counter()
     with timer("generation"):
-        ro = rollout(model, policy.tokenizer, [p.text for p in local], group_size=G,
-                     max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
-                     temperature=cfg.temperature, generator=policy.generator)
+        ro, local, groups_sampled, rounds, first_pass = sample_batch(policy, local, refill)
     with timer("scoring"):
         s = score([p for p in local for _ in range(G)], ro.texts, cfg.reward)
         s["truncated"] = ro.truncated.float().cpu()
@@ -214,7 +281,9 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
                                            cfg.entropy_weight_max)
         mine = slice(rank * per_process * G, (rank + 1) * per_process * G)
         advantages_local = advantages[mine].to(ro.completion_ids.device)
-    mask = ro.completion_mask
+    mask = ro.completion_mask  # the tokens that get a loss
+    if cfg.overlong_filter:  # a truncated completion's tokens get none (DAPO)
+        mask = mask * (~ro.truncated).to(mask.dtype).unsqueeze(-1)
     n_local = mask.shape[0]
     n_seq = n_local * W
     n_tok = int(acc.reduce(mask.sum().to(acc.device), "sum")) if W > 1 else int(mask.sum())
@@ -239,7 +308,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
             with timer("forward"):
                 logprobs, entropy = completion_logprobs(
                     model, ro.prompt_ids[rows], ro.prompt_mask[rows], ro.completion_ids[rows],
-                    mask[rows], temperature=cfg.temperature, with_entropy=True,
+                    ro.completion_mask[rows], temperature=cfg.temperature, with_entropy=True,
                     entropy_grad=ent_weight > 0,
                     group_size=G if cfg.shares_prompt_in_training else 1)
                 # One update per batch: pi_old is the current policy, so the ratio is exactly 1
@@ -259,7 +328,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
                 acc.backward(loss)
             loss_total += float(loss.detach()) / cfg.updates_per_batch
             for k, v in stats.items():  # token-weighted average over micro-batches
-                stats_sum[k] = stats_sum.get(k, 0.0) + v * float(mask[rows].sum()) / n_tok / cfg.updates_per_batch
+                stats_sum[k] = stats_sum.get(k, 0.0) + v * float(mask[rows].sum()) / max(n_tok, 1) / cfg.updates_per_batch
         if W > 1:  # every process must agree to skip, and then reduce together
             step_ok = bool(acc.reduce(torch.tensor(float(step_ok), device=acc.device), "sum") == W)
             if step_ok:
@@ -286,14 +355,16 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt]) -> dict:
         shares = acc.reduce(torch.tensor([loss_total, *stats_sum.values()], device=acc.device), "sum")
         loss_total, stats_sum = float(shares[0]), dict(zip(stats_sum, shares[1:].tolist()))
     t_end = time.perf_counter()
-    lengths = mask.sum(-1).float()
-    total_tokens = (int(ro.prompt_mask.sum()) + int(mask.sum())) * W
+    lengths = ro.completion_mask.sum(-1).float()
+    total_tokens = (int(ro.prompt_mask.sum()) + int(lengths.sum())) * W
     return dict(
         reward_mean=float(s["rewards"].mean()), reward_std=float(s["rewards"].std()),
         pass_length=float(s["length_ok"].mean()), pass_digits=float(s["digits_ok"].mean()),
         pass_both=float(s["passed"].mean()), chars_abs_error=float(s["chars_abs_error"].mean()),
         adv_mean=float(advantages.mean()), adv_std=float(advantages.std()),
         adv_abs_mean=float(advantages.abs().mean()), zero_std_frac=zero_std / len(prompts),
+        groups_sampled=groups_sampled * W, sampling_rounds=rounds, first_round_pass_both=first_pass,
+        distinct_frac=len(set(ro.texts)) / len(ro.texts),
         entropy_weight=ent_weight, kl_coef=beta, completion_tokens=float(lengths.mean()),
         truncated_frac=float(s["truncated"].mean()), empty_frac=float(s["empty"].mean()),
         loss=loss_total, grad_norm=grad_norm,
@@ -371,6 +442,14 @@ def batch_for_step(step: int, prompts: list[data.Prompt], cfg: Config) -> list[d
     return [prompts[int(order[k % len(prompts)])] for k in range(index * B, (index + 1) * B)]
 
 
+def refill_batch(step: int, round: int, prompts: list[data.Prompt], cfg: Config) -> list[data.Prompt]:
+    """Fresh prompts for round ``round`` (1, 2, ...) of dynamic sampling at global step ``step``:
+    a draw seeded by (seed, step, round), so a resumed run samples exactly the same ones."""
+    g = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 1_009 + round)
+    order = torch.randperm(len(prompts), generator=g)
+    return [prompts[int(order[k % len(prompts)])] for k in range(cfg.prompts_per_step)]
+
+
 def _generator_states(policy: Policy) -> torch.Tensor:
     """Every process's sampling-generator state, one row per process (called by all of them)."""
     state = policy.generator.get_state()
@@ -392,6 +471,7 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     """The main job: evaluate, train with GRPO, evaluate again; write everything to out_dir."""
     from tqdm.auto import tqdm
 
+    started = time.perf_counter()
     cfg.validate()
     models.check_available(cfg.model)           # fail before anything slow happens
     run_dir = Path(cfg.out_dir)
@@ -447,7 +527,8 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     bar = tqdm(range(start_step, total), initial=start_step, total=total, desc="GRPO",
                disable=not (progress and main))
     for step in bar:
-        metrics = grpo_step(policy, batch_for_step(step, train_prompts, cfg))
+        metrics = grpo_step(policy, batch_for_step(step, train_prompts, cfg),
+                            refill=lambda k, step=step: refill_batch(step, k, train_prompts, cfg))
         record = dict(step=step + 1, epoch=step // cfg.steps_per_epoch, **metrics)
         if cfg.eval_every and (step + 1) % cfg.eval_every == 0 and step + 1 < total and main:
             ev = evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids, greedy=False)
@@ -467,6 +548,9 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     summary["after"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids,
                                        greedy=mode == "greedy") for mode in ("sampled", "greedy")}
     summary["steps"] = total
+    # wall time of this invocation (of the whole run unless it was resumed), evaluation included
+    summary["seconds"] = time.perf_counter() - started
+    summary["resumed"] = bool(state)
     summary_path.write_text(json.dumps(summary, indent=2))
     from .plots import plot_metrics
 
@@ -486,17 +570,23 @@ def _print_eval(title: str, result: dict) -> None:
 
 def before_after_report(summary: dict, cfg: Config, n_samples: int = 6) -> str:
     """A Markdown before/after table of held-out metrics and sample completions."""
+    first = summary["before"]["greedy"]
     rows = [("mean reward", "reward_mean", "{:.3f}"), ("length pass rate", "pass_length", "{:.1%}"),
             ("digit-sum pass rate", "pass_digits", "{:.1%}"), ("both (recipe pass rate)", "pass_both", "{:.1%}"),
+            (f"both, one-digit targets ({first.get('n_one_digit', '?')} prompts)", "pass_both_one_digit", "{:.1%}"),
+            (f"both, two-digit targets ({first.get('n_two_digit', '?')} prompts)", "pass_both_two_digit", "{:.1%}"),
+            ("distinct completions", "distinct_completions", "{}"),
             ("mean abs(chars - target)", "chars_abs_error", "{:.1f}")]
     n_eval = len(summary["before"]["sampled"]["samples"])
-    lines = [f"## Held-out evaluation: {n_eval} prompts, {summary.get('steps', '?')} GRPO steps, "
-             f"preset model {cfg.model}, reward '{cfg.reward}'", "",
+    n_snippets = first.get("distinct_snippets", "?")
+    lines = [f"## Held-out evaluation: {n_eval} prompts ({n_snippets} distinct held-out snippets, "
+             f"each with its own drawn digit-sum targets), {summary.get('steps', '?')} GRPO steps, "
+             f"model {cfg.model}, reward '{cfg.reward}'", "",
              "| metric | before (sampled) | after (sampled) | before (greedy) | after (greedy) |",
              "|---|---|---|---|---|"]
     for label, key, fmt in rows:
-        vals = [fmt.format(summary[when][mode][key]) for mode in ("sampled", "greedy")
-                for when in ("before", "after")]
+        vals = [fmt.format(summary[when][mode][key]) if key in summary[when][mode] else "n/a"
+                for mode in ("sampled", "greedy") for when in ("before", "after")]
         lines.append(f"| {label} | " + " | ".join(vals) + " |")
     lines += ["", "### Sample completions (greedy), targets: characters / digit sum", "",
               "| target | before | chars / sum | after | chars / sum |", "|---|---|---|---|---|"]

@@ -55,7 +55,7 @@ def setup_code() -> str:
 def cpu_results_markdown() -> str:
     """The saved CPU runs' before/after reports, with their curves (linked for Colab)."""
     parts = []
-    for run in sorted(p for p in RESULTS.iterdir() if (p / "report.md").exists()):
+    for run in sorted(p for p in RESULTS.glob("cpu*") if (p / "report.md").exists()):
         # two levels deeper, so the reports' headings sit under the lesson's section
         report = re.sub(r"^(#+) ", lambda m: "#" * (len(m.group(1)) + 2) + " ",
                         (run / "report.md").read_text(), flags=re.M)
@@ -76,6 +76,48 @@ def track_results_markdown(name: str) -> str:
         image = f"https://raw.githubusercontent.com/{GITHUB_REPO}/main/notebooks/results/tracks/{name}/curves.png"
         text += f"\n\n![{name}: curves, mean over seeds and range]({image})"
     return text
+
+
+def image_link(relative: str, alt: str) -> str:
+    url = f"https://raw.githubusercontent.com/{GITHUB_REPO}/main/notebooks/results/{relative}"
+    return f"![{alt}]({url})"
+
+
+def diagnosis_markdown() -> str:
+    """Lesson 5's side-by-side diagnosis of the reward-hacking run and the main job's run, every
+    number read from their stored files by ``course_utils.ablation.diagnose``."""
+    from course_utils.ablation import diagnose
+
+    runs = {"reward hacking (`cpu-shaped`)": diagnose(RESULTS / "cpu-shaped"),
+            "the fixed recipe (`cpu`)": diagnose(RESULTS / "cpu")}
+    rows = [("GRPO steps", lambda d: f"{d['steps']}"),
+            ("entropy, first step → mean of the last 5 (nats per token)",
+             lambda d: f"{d['entropy_start']:.2f} → {d['entropy_end']:.2f}"),
+            (f"first step with entropy below {next(iter(runs.values()))['entropy_floor']} (3-step mean)",
+             lambda d: str(d["collapse_step"] or "never")),
+            ("groups without signal (all rewards equal), last 5 steps / most in any step",
+             lambda d: f"{d['zero_std_end']:.0%} / {d['zero_std_max']:.0%}"),
+            ("completion tokens, first step → last 5 steps",
+             lambda d: f"{d['tokens_start']:.1f} → {d['tokens_end']:.1f}"),
+            ("extra groups drawn by dynamic sampling, before / after that step",
+             lambda d: f"{d['extra_groups_before']} / {d['extra_groups_after']}"),
+            ("distinct greedy completions on the held-out prompts",
+             lambda d: f"{d['distinct']} of {d['held_out']}"),
+            ("most frequent held-out completion (how often, characters)",
+             lambda d: f"\"{d['top_completion']}\" ({d['top_count']}x, {d['top_chars']} chars)"),
+            ("held-out pass rate: length / digit sum / both",
+             lambda d: f"{d['pass_length']:.1%} / {d['pass_digits']:.1%} / {d['pass_both']:.1%}")]
+    lines = ["| sign | " + " | ".join(runs) + " |", "|---|" + "---|" * len(runs)]
+    for label, cell in rows:
+        lines.append(f"| {label} | " + " | ".join(cell(d).replace("|", "\\|") for d in runs.values()) + " |")
+    return "\n".join(lines)
+
+
+def ablation_markdown() -> str:
+    """The stored ablation of the cpu preset's levers (``python -m course_utils.ablation``)."""
+    folder = RESULTS / "ablation"
+    text = (folder / "report.md").read_text().strip()
+    return text + "\n\n" + image_link("ablation/curves.png", "ablation: training curves, mean over seeds and range")
 
 
 def fill_markdown(text: str, key: str, content: str) -> str:
@@ -128,6 +170,10 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, f"TRACK_RESULTS:{name}", track_results_markdown(name))
     if "{{CPU_RESULTS}}" in text:
         text = fill_markdown(text, "CPU_RESULTS", cpu_results_markdown())
+    if "{{DIAGNOSIS}}" in text:
+        text = fill_markdown(text, "DIAGNOSIS", diagnosis_markdown())
+    if "{{ABLATION_RESULTS}}" in text:
+        text = fill_markdown(text, "ABLATION_RESULTS", ablation_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
@@ -143,8 +189,25 @@ def render(source: Path, learner: bool) -> dict[str, str]:
     return {".py": jupytext.writes(nb, fmt="py:percent"), ".ipynb": jupytext.writes(nb, fmt="ipynb")}
 
 
+README = HERE.parent / "README.md"
+# README sections rendered from stored results: <!-- results: NAME --> ... <!-- end results -->
+README_RESULTS = {"cpu": lambda: re.sub(r"^(#+) ", r"##\1 ", (RESULTS / "cpu" / "report.md").read_text().strip(), flags=re.M),
+                  "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip()}
+
+
+def readme_text() -> str:
+    """The README with every results section re-rendered from notebooks/results/."""
+    text = README.read_text()
+    for name, render_section in README_RESULTS.items():
+        pattern = re.compile(rf"(<!-- results: {name} -->\n)(.*?)(<!-- end results -->)", re.S)
+        if not pattern.search(text):
+            raise ValueError(f"README.md has no '<!-- results: {name} -->' section")
+        text = pattern.sub(lambda m: m.group(1) + render_section() + "\n" + m.group(3), text)
+    return text
+
+
 def targets() -> dict[Path, str]:
-    files = {}
+    files = {README: readme_text()}
     for source in sorted(SRC.glob("[0-9][0-9]_*.py")):
         for learner, folder in ((True, HERE), (False, SOLUTIONS)):
             for suffix, content in render(source, learner).items():

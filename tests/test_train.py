@@ -196,18 +196,11 @@ def test_gradient_checkpointing_is_engaged_and_exact(monkeypatch):
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-8)
 
 
-def test_reward_aware_kl_moves_the_coefficient_and_resumes_exactly(tmp_path):
-    settings = dict(kl_coef=0.05, kl_schedule="reward_aware", save_every=1)
-    train.train(load_config("smoke", out_dir=str(tmp_path / "full"), max_steps=4, **settings), progress=False)
-    train.train(load_config("smoke", out_dir=str(tmp_path / "part"), max_steps=2, **settings), progress=False)
-    train.train(load_config("smoke", out_dir=str(tmp_path / "part"), max_steps=4, **settings),
-                resume=True, progress=False)
-    ra = checkpoint.MetricsLog(tmp_path / "full" / "metrics.jsonl").read()
-    rb = checkpoint.MetricsLog(tmp_path / "part" / "metrics.jsonl").read()
+def test_reward_aware_kl_moves_the_coefficient_and_resumes_exactly(resume_pair):
+    (ra, rb), (a, b) = resume_pair(kl_coef=0.05, kl_schedule="reward_aware")
     coefs = [r["kl_coef"] for r in ra]
     assert coefs[0] == pytest.approx(0.05) and len(set(coefs)) > 1   # it reacts to the batches
     assert coefs == [r["kl_coef"] for r in rb]                         # its state is checkpointed
-    a, b = _params(tmp_path / "full"), _params(tmp_path / "part")
     assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(Exception, match="kl_schedule"):
         load_config("smoke", kl_schedule="reward_aware")                 # needs kl_coef > 0

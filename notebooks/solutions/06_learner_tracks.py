@@ -34,8 +34,8 @@
 # | 5. Open question | per-prompt groups or whole-batch normalization, when prompts differ in difficulty? |
 #
 # Every experiment is a function in `course_utils/tracks.py` (read it: each is a page). The
-# training runs are the `cpu` preset shortened to 12 steps (2 to 4 minutes each on 2 CPU
-# cores) and are shared between tracks: plain GRPO with seed *s* is the "no entropy bonus", the
+# training runs are the `cpu` preset as it was before lesson 5's fixes (shaped reward, no
+# dynamic sampling), shortened to 12 steps (2 to 4 minutes each on 2 CPU cores) and are shared between tracks: plain GRPO with seed *s* is the "no entropy bonus", the
 # "no KL" and the "per-prompt groups" arm at once. In CI this notebook runs every experiment
 # shrunk to seconds on a tiny random model; below each one are the numbers and plots of the real
 # run on the embedded SmolLM2-135M-Instruct, from

@@ -340,7 +340,8 @@ if not SMOKE:  # every baselined method beats plain REINFORCE on every seed
 # `GRPOTrainer` on the same work (the README's "Performance" section has the figures).
 #
 # Run the whole recipe on the embedded SmolLM2 with `python -m course_utils.train --preset cpu`
-# (about ten minutes on two CPU cores), or open lesson 5 for the Colab T4 version.
+# (under fifteen minutes on two CPU cores), or open lesson 5 for the Colab T4 version and for
+# why a run can reach a high reward and still fail the rule.
 #
 # ## Check yourself
 #

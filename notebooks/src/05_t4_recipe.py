@@ -45,13 +45,17 @@ if GPU and "T4" not in GPU:
 # ## 1. The configuration
 #
 # The `t4` preset is the seed recipe, corrected: GRPO groups of $G = 8$ completions per prompt
-# (the seed standardized over the whole batch instead; `advantage_center="batch"` restores that),
-# the shaped reward rather than the seed's binary one (section 5 shows why),
-# 16 prompts per step, 128-token openwebtext prompts, a 64-character target, AdamW with lr 1e-5
-# and weight decay 0.01, gradient clipping at 1.0, gradient accumulation, fp16 autocast with fp32
-# master weights, gradient checkpointing, and the seed's entropy bonus scaled by the inverse
-# reward variance (a course extension, not part of GRPO). Without a GPU the same preset runs
-# shrunk: a tiny random model, offline prompts, fp32, three steps.
+# (the seed standardized over the whole batch instead), the sharp reward and DAPO's dynamic
+# sampling rather than the seed's binary reward (sections 5 and 6 show why), 16 prompts per
+# step, 128-token openwebtext prompts, a 64-character target, AdamW with lr 1e-5 and weight
+# decay 0.01, gradient clipping at 1.0, gradient accumulation, fp16 autocast with fp32 master
+# weights and gradient checkpointing. Two things of the seed's are left out: its entropy bonus
+# scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 6's
+# ablation did not find helpful), and a KL term: `kl_coef=0`, because in the course's CPU runs
+# a KL penalty slowed learning, it costs a reference forward per step, and DAPO drops it as
+# well. If the model's language degrades over a long run, `kl_coef=0.04` (DeepSeekMath's value)
+# is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
+# prompts, fp32, three steps.
 
 # %%
 RUN_DIR = "runs/t4"
@@ -63,7 +67,7 @@ if IN_COLAB and USE_DRIVE:
 
 if GPU:
     cfg = load_config("t4", out_dir=RUN_DIR)
-else:  # the T4 code paths (checkpointing, accumulation, entropy bonus) on a tiny model, fp32
+else:  # the T4 code paths (checkpointing, accumulation, dynamic sampling) on a tiny model, fp32
     cfg = load_config("t4", model="tiny-qwen2", prompt_source="offline", precision="fp32",
                       prompt_tokens=16, target_chars=48, prompts_per_step=2, group_size=4,
                       grad_accum=2, max_new_tokens=12, lr=1e-3, train_prompts=6, eval_prompts=4,
@@ -152,40 +156,176 @@ display(Markdown((run / "report.md").read_text()))
 #
 # The T4 run cannot be executed where this course is built. What was run, for real, is the same
 # loop on the embedded SmolLM2-135M-Instruct on 2 CPU cores (the `cpu` preset: 32-character
-# target, 32-token snippets, 40 steps of 4 prompts x 8 completions), with the recipe's binary
-# reward and with the shaped one. The commands:
+# target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), three
+# times: the main job as it is now (`cpu`), the same job as the course first shipped it, with
+# the shaped reward and no dynamic sampling (`cpu-shaped`, 40 steps), and with the recipe's binary
+# reward (`cpu-binary`). The commands:
 #
 # ```bash
-# python -m course_utils.train --preset cpu --out_dir runs/cpu                  # shaped reward
-# python -m course_utils.train --preset cpu --reward binary --out_dir runs/cpu-binary
+# python -m course_utils.train --preset cpu --out_dir runs/cpu                       # the main job
+# # the preset as first shipped: shaped or binary reward, no dynamic sampling
+# python -m course_utils.train --preset cpu --reward shaped --dynamic_sampling false \
+#     --lr 3e-5 --max_new_tokens 32 --train_prompts 160 --out_dir runs/cpu-shaped
+# python -m course_utils.train --preset cpu --reward binary --dynamic_sampling false \
+#     --lr 3e-5 --max_new_tokens 32 --train_prompts 160 --out_dir runs/cpu-binary
 # ```
 #
-# Their outputs are saved in `notebooks/results/`; both runs are deterministic on a CPU, so the
-# commands reproduce them exactly.
+# Their outputs are saved in `notebooks/results/`; every run is deterministic on a CPU, so the
+# commands reproduce them on the same software versions (the two older runs were made with the
+# previous version of the loop, whose code path is the same with dynamic sampling off; their
+# tables lack the rows added since). The held-out prompts continue
+# snippets that were never trained on; there are few distinct held-out snippets (the tables say
+# how many), each paired with several drawn digit-sum targets, so a held-out pass rate measures
+# the rule on new targets more than on new text.
 #
 # {{CPU_RESULTS}}
 
 # %% [markdown]
-# **Binary or shaped?** With the recipe's binary reward nothing happened, and the curves say
-# why: at the start no completion passes both constraints, so in all 40 steps every group of 8
-# had the same reward (0), every advantage was 0, the gradient was exactly 0 (`grad_norm` 0 in
-# `metrics.jsonl`) and the held-out table is unchanged. With the shaped reward every group had
-# spread from step 1, the mean miss fell from 88 to 2 characters and the mean reward rose from
-# 0.42 to 0.94. But read the completions: the recipe's pass rate is still 0%. The policy found a
-# template, "*N* characters with only spaces.", with *N* the target digit sum copied from the
-# instruction: 30 characters, which the shaped length credit barely penalizes, and a correct
-# digit sum whenever the target is a single digit. By the last steps whole groups write the
-# same template, so zero-std groups come back (`zero_std_frac` up to 0.75): the policy has
-# collapsed onto it. Partial credit gave the signal the binary reward could not, and then
-# became the target. The `t4` preset still trains on the **shaped** reward, because without
-# signal nothing is learned at all, and *reports* the recipe's binary pass rate ("both" in the
-# tables) so that a hack like this one is visible; a binary reward needs a policy that already
-# passes sometimes, or larger groups, or DAPO's dynamic sampling. Counters worth trying (not
-# built in; good exercises): a curriculum that switches to the binary reward once the length
-# pass rate is clearly above 0, or a sharper length credit. Set `reward="binary"` to run the
-# seed's choice and watch `zero_std_frac`.
+# **Binary reward: no signal.** With the recipe's binary reward nothing happened, and the curves
+# say why: at the start no completion passes both constraints, so every group of 8 had the same
+# reward (0), every advantage was 0, the gradient was exactly 0 (`grad_norm` 0 in
+# `metrics.jsonl`) and the held-out table is unchanged. A binary reward needs a policy that
+# already passes sometimes.
 #
-# ## 6. Next steps: the same rewards in TRL
+# ## 6. When a run stops learning: diagnosis and fixes
+#
+# The shaped reward gave the signal the binary reward could not, and then became the target.
+# The `cpu-shaped` run's reward climbed towards its ceiling while its pass rate (both
+# constraints) stayed at zero. Read its completions: the policy found a *template* that copies
+# the target digit from the instruction into a fixed sentence a little shorter than the target.
+# The shaped credit barely penalizes a miss of two characters, and, worse, inside a group the
+# small difference between the template and an exact hit is drowned by the larger spread of
+# the digit credits, so GRPO's standardized advantages hardly ever favour the exact length.
+# Then the template took over: every member of a group wrote it, the groups' rewards became
+# equal, and the signal was gone. This is reward hacking in miniature: the policy optimizes the
+# checker's partial credit, not your intention.
+#
+# ### 6.1 The signs, read from the files
+#
+# Every number below comes from the two runs' stored `metrics.jsonl` and `summary.json`
+# (`course_utils.ablation.diagnose`):
+#
+# {{DIAGNOSIS}}
+#
+# Read the two columns together: *both* runs show the signs of a policy that stopped exploring
+# (entropy near zero, most groups without signal, few distinct completions). The difference is
+# what each settled on: a sentence that misses the rule by a couple of characters, or one that
+# meets it for the targets it can copy. Collapse is not failure by itself; collapse onto the
+# wrong thing, with no exploration left to leave it, is.
+#
+# What to look for in your own runs, in this order:
+#
+# 1. **Entropy heading to zero.** The policy is becoming deterministic. That is fine once it is
+#    right; before that, it stops exploring, and GRPO can only reinforce what it samples.
+# 2. **Groups without signal coming back** (`zero_std_frac`). A group whose G completions all
+#    get the same reward has advantage 0 everywhere. At the start that means the task is too
+#    hard (the binary run); late in a run it means the policy writes the same thing G times.
+# 3. **Completion length flat and few distinct completions.** A template: one sentence for every
+#    prompt. The checker cannot see that the text no longer continues the snippet; the count of
+#    distinct held-out completions can.
+# 4. **Mean reward near its ceiling while the pass rate stays low.** The partial credit is being
+#    optimized instead of the rule.
+#
+# The next cell runs the same diagnosis on *your* run from section 3.
+
+# %%
+from course_utils import ablation
+
+mine = ablation.diagnose(Path(cfg.out_dir))
+for key, value in mine.items():
+    print(f"{key:>16}: {value}")
+
+# %% [markdown]
+# ### 6.2 Two fixes, each aimed at one cause
+#
+# **A reward that pays a pass clearly more than any near miss** (`reward="sharp"`,
+# `course_utils/rewards.py`): two thirds of the shaped score plus one third of the binary one.
+# Until some completion passes, this is the shaped reward times 2/3, and group standardization
+# removes a common factor, so the early run is exactly the shaped run, which quickly learns
+# short answers near the target (a test checks that the advantages are equal). Once passes turn
+# up, each one earns a third of the whole score more than the best near miss: a large
+# advantage inside its group, where the shaped reward gave it almost none. Two other designs
+# failed in the course's runs, and the way they failed is the lesson: a bonus for the exact
+# *length* alone made the policy lock onto the first 32-character sentence it found, whatever
+# its digit sum (one sentence for every prompt); a bonus for the exact *digit sum* made writing
+# the digit alone the easiest thing to learn. Every partial credit is a new target to hack, and
+# what matters is the ranking it induces inside a group, not its absolute values.
+#
+# **Dynamic sampling** (`dynamic_sampling=True`, DAPO, arXiv 2503.14476): a group whose
+# rewards are all equal is dropped and fresh prompts are sampled, up to `max_sampling_rounds`
+# rounds, until the batch holds `prompts_per_step` groups with signal (a batch still short is
+# filled with groups without signal, so the batch size never changes). It costs generation,
+# counted in `groups_sampled` per step, and the table in 6.1 shows where that cost went in the
+# main job: little before the entropy fell, much after it, when a settled policy writes the
+# same completion G times and fresh prompts rarely have signal either. There it is the
+# policy's lost exploration, not the batch, that limits learning, which is why the preset
+# bounds it at two rounds. Whether it helps at all on this task is what the ablation's
+# "without dynamic sampling" arm measures.
+#
+# **What the recipe leaves out, and why.** The `cpu` preset's learning rate (6e-5) and its
+# cap of 24 new tokens (room for 32 characters, about 8 tokens, and cheap first steps) are what
+# fit the run into 15 minutes, and they make it fragile: in one run with a different set of
+# training prompts the policy found the cap itself, stopped emitting the end-of-sequence token
+# and filled the 24 tokens with noise of about the right length, which the checker scores like
+# any text. DAPO's overlong filtering (`overlong_filter=True`: a completion cut off at
+# `max_new_tokens` gets no loss) removes that incentive, but the one run with it drifted into
+# noise anyway. Both runs' metrics are in `notebooks/results/failed-runs/`. With more time, a
+# lower learning rate, a looser cap, or a KL term (`kl_coef`) to the pre-trained model are the
+# levers that keep the policy's language intact; the entropy bonus and clip-higher (which only
+# acts with several updates per batch, doubling the cost of a step here) are the others DAPO
+# and the seed text suggest.
+#
+# **Under dynamic sampling, read the right pass rate.** The batch trained on is *selected*:
+# once the policy passes on some prompts, the groups kept are the ones where it sometimes
+# passes, so the batch's pass rate overstates the policy's. `first_round_pass_both` is the pass
+# rate of the first round, sampled before any selection.
+#
+# ### 6.3 The ablation
+#
+# Each arm is the main job with one lever taken out, with the same steps and the same held-out
+# prompts, over seeds 0, 1 and 2 (the table lists the seeds each arm has been run with; an arm
+# with one seed says what can happen, not how often). Reproduce with `python -m course_utils.ablation --seeds 0 1 2
+# --out notebooks/results/ablation` (each run about as long as the main job; finished runs are
+# reused, so an interrupted command resumes).
+#
+# {{ABLATION_RESULTS}}
+#
+# Read the per-seed column first: the stored main-job run (seed 0) is the best of the three.
+# The other seeds were still exploring when their 48 steps ran out, with many distinct
+# completions and passes only just appearing, and the pass bonus cannot act before the first
+# pass. On this budget the recipe works on some seeds, not reliably; the arms not run yet are
+# the next experiments, and more steps (a longer budget than the main job's 15 minutes) the
+# first thing to try.
+#
+# ### 6.4 What the fixed run learned, read honestly
+#
+# Look at the main job's completions in section 5 and at the distinct-completion count in 6.1.
+# The stored run's policy also writes a template: one sentence with a slot for the target
+# digit, exactly 32 characters long when the target has one digit. Hence the split in its
+# table: the one-digit targets pass, the two-digit ones do not (it writes one fixed two-digit
+# number there, a character too long), and it no longer continues the snippet at all. The rule checker cannot see that; it was never asked to.
+# GRPO optimized exactly the reward it was given, and this is what the reward asks for. Nor is
+# the stored run the rule: the ablation's full-recipe row gives all three seeds, and a seed
+# whose policy has not met a single pass by the end of its 48 steps never gets the bonus at all. To get
+# continuations that also obey the rule, the reward has to say so: a KL term to the pre-trained
+# model (`kl_coef`), a second reward for staying on topic, or a rule that cannot be met by a
+# fixed sentence. That is the honest summary of reward design: the checker is the
+# specification, and a policy will find every gap in it.
+#
+# The next cell re-runs the ablation: shrunk to seconds on the tiny model in smoke mode, and
+# with real weights only if you set `RUN_EXPERIMENTS = True` (it is the main job several times
+# over; the table above is its stored result).
+
+# %%
+RUN_EXPERIMENTS = False
+if SMOKE or RUN_EXPERIMENTS:
+    result = ablation.ablation([0] if SMOKE else [0, 1, 2], Path("runs/ablation-results"))
+    display(Image(filename="runs/ablation-results/curves.png"))
+else:
+    print("Showing the stored results above; set RUN_EXPERIMENTS = True to train every arm again.")
+
+# %% [markdown]
+# ## 7. Next steps: the same rewards in TRL
 #
 # `course_utils.rewards` functions have TRL's signature, so TRL's `GRPOTrainer` takes them
 # unchanged; extra dataset columns (`target_chars`, `target_digit_sum`) reach them as keyword
@@ -224,3 +364,9 @@ else:
 # 3. After a disconnect, which cells do you run, and how do you know no step was repeated?
 # 4. Why might the binary reward give no learning signal at the start, and what do the
 #    `zero_std_frac` curves show?
+# 5. A run's mean reward is 0.95 and its pass rate 0%. Which three curves do you look at next,
+#    and what would each show if the policy had found a template?
+# 6. Why does multiplying every reward by 2/3 change nothing in GRPO, and why does that make
+#    the early part of a run on the sharp reward identical to one on the shaped reward?
+# 7. Under dynamic sampling, why is the pass rate of the batch trained on higher than the
+#    policy's? Which logged number is not biased that way?

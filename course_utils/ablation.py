@@ -1,0 +1,187 @@
+"""Why a GRPO run fails and what fixes it: the `cpu` preset's levers, each taken out in turn.
+
+    python -m course_utils.ablation --seeds 0 1 2 --out notebooks/results/ablation
+
+Every arm is the main job (the ``cpu`` preset, same steps, same held-out prompts) with one
+change; each seed's run is kept in ``runs/ablation/<arm>/seed<s>`` and reused if it finished, so
+an interrupted command picks up where it stopped. It writes ``result.json`` (every number,
+per seed), ``report.md`` (mean ± std over seeds, and each arm against the full recipe) and
+``curves.png``. Lesson 5 renders its section from these files. With ``COURSE_SMOKE=1`` it runs
+shrunk on the tiny model in seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+from pathlib import Path
+
+from . import train
+from .config import PRESETS, load_config, smoke_mode
+from .tracks import differs, mean_std, plot_curves, records
+
+RUNS = Path("runs/ablation")
+FULL = "full recipe (the cpu preset)"
+# One change each, on top of the cpu preset.
+ARMS: dict[str, dict] = {
+    FULL: {},
+    "shaped reward instead of sharp": dict(reward="shaped"),
+    "without dynamic sampling": dict(dynamic_sampling=False),
+}
+SMOKE = dict(model="tiny-qwen2", prompt_tokens=16, prompts_per_step=2, group_size=4,
+             max_new_tokens=10, train_prompts=4, eval_prompts=4, save_every=2, lr=1e-3)
+# What a run is judged on: the held-out greedy evaluation after training.
+METRICS = [("pass_both", "both constraints", "{:.1%}"),
+           ("pass_both_one_digit", "both, one-digit targets", "{:.1%}"),
+           ("pass_both_two_digit", "both, two-digit targets", "{:.1%}"),
+           ("pass_length", "length", "{:.1%}"),
+           ("pass_digits", "digit sum", "{:.1%}"),
+           ("distinct_completions", "distinct completions", "{:.1f}")]
+
+
+def arm_dir(arm: str, seed: int) -> Path:
+    slug = "".join(c if c.isalnum() else "-" for c in arm.lower()).strip("-")
+    return RUNS / ("smoke" if smoke_mode() else "full") / slug / f"seed{seed}"
+
+
+def finished(run_dir: Path) -> bool:
+    done = run_dir / "summary.json"
+    return done.exists() and "after" in json.loads(done.read_text())
+
+
+def run_arm(arm: str, seed: int) -> Path:
+    """Train one arm for one seed, or reuse the run if it finished; returns its directory."""
+    out = arm_dir(arm, seed)
+    if finished(out):
+        return out
+    overrides = {**ARMS[arm], **(SMOKE if smoke_mode() else {})}
+    train.train(load_config("cpu", seed=seed, out_dir=str(out), **overrides), progress=False)
+    return out
+
+
+def arm_result(run_dir: Path) -> dict:
+    """The numbers of one run: held-out greedy metrics after training, and its cost."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    steps = records(run_dir)
+    after = summary["after"]["greedy"]
+    tail = steps[-5:]
+    return dict(**{key: after[key] for key, _, _ in METRICS},
+                before_pass_both=summary["before"]["greedy"]["pass_both"],
+                seconds=summary.get("seconds"), steps=len(steps),
+                groups_sampled=sum(r.get("groups_sampled", 0) for r in steps),
+                final_entropy=statistics.mean(r["entropy"] for r in tail),
+                final_zero_std_frac=statistics.mean(r["zero_std_frac"] for r in tail),
+                top_completion=max(after["samples"], key=lambda s: sum(
+                    t["completion"] == s["completion"] for t in after["samples"]))["completion"])
+
+
+def diagnose(run_dir: Path, entropy_floor: float = 0.5) -> dict:
+    """The signs of a run that has stopped learning, read from its files: when the entropy fell
+    below ``entropy_floor`` nats per token (3-step average), how many groups had no signal at
+    the end, how long the completions were, and what the policy writes on held-out prompts
+    (its most frequent greedy completion, and how many distinct ones there are)."""
+    run_dir = Path(run_dir)
+    steps = records(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    entropy = [r["entropy"] for r in steps]
+    smoothed = [statistics.mean(entropy[max(0, i - 2):i + 1]) for i in range(len(entropy))]
+    collapse = next((i + 1 for i, e in enumerate(smoothed) if e < entropy_floor), None)
+    after = summary["after"]["greedy"]
+    texts = [s["completion"] for s in after["samples"]]
+    top = max(set(texts), key=texts.count)
+    last = steps[-5:]
+    # dynamic sampling's cost: groups sampled beyond the batch's own, before and after the
+    # entropy fell below the floor (0 for runs without it, or logged before it existed)
+    B = json.loads((run_dir / "config.json").read_text())["prompts_per_step"]
+    extra = [r.get("groups_sampled", B) - B for r in steps]
+    split = (collapse or len(steps) + 1) - 1
+    return dict(steps=len(steps), entropy_start=entropy[0], entropy_end=statistics.mean(entropy[-5:]),
+                collapse_step=collapse, entropy_floor=entropy_floor,
+                zero_std_end=statistics.mean(r["zero_std_frac"] for r in last),
+                zero_std_max=max(r["zero_std_frac"] for r in steps),
+                tokens_start=steps[0]["completion_tokens"],
+                tokens_end=statistics.mean(r["completion_tokens"] for r in last),
+                extra_groups_before=sum(extra[:split]), extra_groups_after=sum(extra[split:]),
+                held_out=len(texts), distinct=len(set(texts)), top_completion=top,
+                top_count=texts.count(top), top_chars=len(top.strip()),
+                pass_both=after["pass_both"], pass_length=after["pass_length"],
+                pass_digits=after["pass_digits"])
+
+
+def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
+             train_missing: bool = True) -> dict:
+    """Train (or reuse) every arm for every seed, then write the report; ``arms`` restricts
+    the arms (by their names in ``ARMS``), the full recipe always included. With
+    ``train_missing=False`` only finished runs are reported, and the table says how many
+    seeds each arm has."""
+    chosen = [FULL] + [a for a in (arms or ARMS) if a != FULL]
+    unknown = [a for a in chosen if a not in ARMS]
+    if unknown:
+        raise SystemExit(f"error: unknown arm(s) {unknown}; arms: {list(ARMS)}")
+    if train_missing:
+        dirs = {arm: [run_arm(arm, s) for s in seeds] for arm in chosen}
+    else:
+        dirs = {arm: [arm_dir(arm, s) for s in seeds if finished(arm_dir(arm, s))] for arm in chosen}
+        dirs = {arm: ds for arm, ds in dirs.items() if ds}
+    results = {arm: [arm_result(d) for d in ds] for arm, ds in dirs.items()}
+    plot_curves(dirs, [("pass_both", "training pass rate (both)"), ("entropy", "entropy (nats/token)"),
+                       ("zero_std_frac", "groups without signal"), ("chars_abs_error", "|chars - 32|")],
+                out / "curves.png")
+    header = ("| arm | seeds | both constraints, per seed | " + " | ".join(label for _, label, _ in METRICS) +
+              " | seconds | groups sampled |")
+    lines = [header, "|" + "---|" * (len(METRICS) + 5)]
+    for arm, rows in results.items():
+        cells = []
+        for key, _, fmt in METRICS:
+            values = [r[key] for r in rows if not math.isnan(r[key])]  # nan: no such target
+            if not values:
+                cells.append("n/a")
+                continue
+            cell = fmt.format(statistics.mean(values))
+            if len(values) > 1:  # one seed has no spread to show
+                cell += " ± " + fmt.format(statistics.stdev(values))
+            cells.append(cell)
+        seconds = statistics.mean(r["seconds"] for r in rows)
+        groups = statistics.mean(r["groups_sampled"] for r in rows)
+        seeds_of = ", ".join(d.name.removeprefix("seed") for d in dirs[arm])
+        per_seed = ", ".join(f"{r['pass_both']:.1%}" for r in rows)
+        lines.append(f"| {arm} | {seeds_of} | {per_seed} | " + " | ".join(cells) +
+                     f" | {seconds:.0f} | {groups:.0f} |")
+    full = [r["pass_both"] for r in results[FULL]]
+    verdicts = [f"- {arm} vs the full recipe, held-out pass rate (both): "
+                f"{differs([r['pass_both'] for r in rows], full)}"
+                for arm, rows in results.items() if arm != FULL]
+    missing = [arm for arm in ARMS if arm not in results]
+    report = ("Held-out greedy evaluation after training (mean ± std over the seeds listed, the "
+              "value alone for one seed; every "
+              "arm is the `cpu` preset with one change; seconds: wall time of a run, evaluation "
+              "included; groups sampled: over the whole run):\n\n" + "\n".join(lines) + "\n\n" +
+              ("\n".join(verdicts) + "\n" if verdicts else "") +
+              (f"\nNot run yet: {', '.join(missing)}.\n" if missing else ""))
+    result = dict(seeds=seeds, arms={arm: dict(overrides=ARMS[arm], runs=rows, dirs=[str(d) for d in dirs[arm]])
+                                     for arm, rows in results.items()},
+                  preset=PRESETS["cpu"], verdicts=verdicts)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.md").write_text(report)
+    (out / "result.json").write_text(json.dumps(result, indent=2))
+    print(report)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m course_utils.ablation", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--out", type=Path, default=Path("runs/ablation/report"))
+    parser.add_argument("--arms", nargs="+", default=None, help="arm names (default: all)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="train nothing: report the runs that have finished")
+    args = parser.parse_args(argv)
+    ablation(args.seeds, args.out, args.arms, train_missing=not args.report_only)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,294 @@
+"""The levers against reward hacking and signal loss (issue 11): the sharp reward, DAPO's dynamic
+sampling and overlong filtering. Each is checked for numbers: exact values, batch size,
+gradients against a second computation, and bitwise resume."""
+import pytest
+import torch
+
+from course_utils import rewards, train
+from course_utils.config import load_config
+from course_utils.data import Prompt
+from course_utils.losses import group_advantages
+from course_utils.rollout import completion_logprobs, concat_rollouts, rollout
+
+
+# --- the sharp reward ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("text, target_chars, target_sum, expected", [
+    ("a" * 32, 32, 0, 1.0),                                       # both exact
+    ("a" * 31, 32, 0, 2 / 3 * (0.5 * 32 / 33 + 0.5)),             # one character short: no pass
+    ("a" * 30, 32, 0, 2 / 3 * (0.5 * 32 / 34 + 0.5)),             # the 30-character template
+    ("12" + "a" * 30, 32, 3, 1.0),                                # digits 1 + 2 = 3
+    ("9" + "a" * 31, 32, 7, 2 / 3 * (0.5 + 0.5 * 7 / 9)),          # exact length alone earns no bonus
+    ("", 4, 2, 2 / 3 * (0.5 * 0.5 + 0.5 * 0.5)),
+    ("a" * 130, 32, 0, 2 / 3 * (0.5 / (1 + 98 / 32) + 0.5)),
+])
+def test_sharp_reward_by_hand(text, target_chars, target_sum, expected):
+    got = rewards.sharp_reward(None, [text], target_chars=[target_chars], target_digit_sum=[target_sum])
+    assert got == [pytest.approx(expected)]
+
+
+def test_sharp_reward_is_one_exactly_when_binary_is_and_ranks_a_hit_clearly_above_a_near_miss():
+    g = torch.Generator().manual_seed(0)
+    texts = ["".join(chr(int(c)) for c in torch.randint(48, 123, (int(n),), generator=g))
+             for n in torch.randint(0, 40, (400,), generator=g)]
+    chars = [int(x) for x in torch.randint(1, 40, (400,), generator=g)]
+    sums = [int(x) for x in torch.randint(0, 30, (400,), generator=g)]
+    sharp = rewards.sharp_reward(None, texts, target_chars=chars, target_digit_sum=sums)
+    binary = rewards.binary_reward(None, texts, target_chars=chars, target_digit_sum=sums)
+    assert all((s == 1.0) == (b == 1.0) for s, b in zip(sharp, binary))
+    assert all(0 < s <= 1 for s in sharp)
+    # the 30-character template: the shaped reward pays it 0.97, the sharp one 0.65
+    two_short = dict(target_chars=[32], target_digit_sum=[0])
+    assert rewards.shaped_reward(None, ["a" * 30], **two_short)[0] > 0.96
+    assert rewards.sharp_reward(None, ["a" * 30], **two_short)[0] < 0.65
+    # far misses stay ordered (the relative part): 100 characters over beats 120 over
+    far = rewards.sharp_reward(None, ["a" * 132, "a" * 152], **{k: v * 2 for k, v in two_short.items()})
+    assert far[0] > far[1]
+
+
+# --- joining rollouts ----------------------------------------------------------------------------
+
+def test_concatenated_rollouts_give_the_same_logprobs_and_gradients(tiny_model, tokenizer):
+    """Dynamic sampling trains on groups picked from different sampling rounds, re-padded to a
+    common width. Padding must change nothing: values and gradients as for each part alone."""
+    gens = [torch.Generator().manual_seed(s) for s in (1, 2)]
+    a = rollout(tiny_model, tokenizer, ["One two three four five six", "Hi"], group_size=3,
+                max_new_tokens=7, eos_ids=[tokenizer.eos_token_id], generator=gens[0])
+    b = rollout(tiny_model, tokenizer, ["A much longer prompt than the others, with more words"],
+                group_size=3, max_new_tokens=4, eos_ids=[tokenizer.eos_token_id], generator=gens[1])
+    picked = [a.select_groups([1]), b, a.select_groups([0])]
+    joined = concat_rollouts(picked, tokenizer.pad_token_id)
+    assert joined.completion_ids.shape[0] == 9 and joined.texts == [t for p in picked for t in p.texts]
+
+    def lp_and_grad(ro):
+        tiny_model.zero_grad()
+        lp, _ = completion_logprobs(tiny_model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
+                                    ro.completion_mask, group_size=3)
+        (lp * ro.completion_mask).sum().backward()
+        return lp, torch.cat([p.grad.flatten().clone() for p in tiny_model.parameters()])
+
+    lp_joined, grad_joined = lp_and_grad(joined)
+    grad_parts = 0
+    for k, part in enumerate(picked):
+        lp, grad = lp_and_grad(part)
+        rows = slice(3 * k, 3 * k + 3)
+        T = part.completion_ids.shape[1]
+        assert torch.allclose(lp * part.completion_mask, lp_joined[rows, :T] * joined.completion_mask[rows, :T], atol=1e-5)
+        assert (joined.completion_mask[rows, T:] == 0).all()
+        assert torch.allclose(part.logprobs, joined.logprobs[rows, :T])
+        grad_parts = grad_parts + grad
+    err = (grad_joined - grad_parts).norm() / grad_parts.norm()
+    assert err < 1e-5, err
+
+
+# --- dynamic sampling ----------------------------------------------------------------------------
+
+def _prompts(sums):
+    return [Prompt(text=f"Prompt number {i} says {'more ' * i}", snippet=str(i), target_chars=48,
+                   target_digit_sum=s) for i, s in enumerate(sums)]
+
+
+def _flat_on_odd_targets(prompts, completions, target_digit_sum, **kw):
+    """A reward with no signal for prompts whose target is odd: their groups are all 0.5."""
+    return [0.5 if s % 2 else float(len(c) % 5) for c, s in zip(completions, target_digit_sum)]
+
+
+def test_dynamic_sampling_keeps_the_batch_size_and_only_groups_with_signal(monkeypatch):
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", _flat_on_odd_targets)
+    policy = train.setup(load_config("smoke", dynamic_sampling=True, max_sampling_rounds=5))
+    first = _prompts([3, 4])          # one group without signal (odd), one with
+    fresh = {1: _prompts([5, 7]), 2: _prompts([6, 9]), 3: _prompts([8, 8])}
+    asked = []
+
+    def refill(k):
+        asked.append(k)
+        return fresh[k]
+
+    ro, kept, sampled, rounds, _ = train.sample_batch(policy, first, refill)
+    assert [p.target_digit_sum for p in kept] == [4, 6]   # round 2 supplied the second one
+    assert asked == [1, 2] and rounds == 3 and sampled == 6
+    assert ro.completion_ids.shape[0] == 2 * policy.cfg.group_size
+    r = torch.tensor(train.score([p for p in kept for _ in range(4)], ro.texts, "shaped")["rewards"])
+    assert group_advantages(r, 4)[1] == 0                   # no zero-std group was kept
+
+
+def test_dynamic_sampling_fills_a_short_batch_with_groups_without_signal(monkeypatch):
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", _flat_on_odd_targets)
+    policy = train.setup(load_config("smoke", dynamic_sampling=True, max_sampling_rounds=2))
+    ro, kept, sampled, rounds, _ = train.sample_batch(policy, _prompts([3, 5]), lambda k: _prompts([7, 4]))
+    # 2 rounds: one group with signal (target 4) found; the batch is filled with the first spare
+    assert [p.target_digit_sum for p in kept] == [4, 3] and sampled == 4 and rounds == 2
+    metrics = train.grpo_step(policy, _prompts([3, 5]), refill=lambda k: _prompts([7, 4]))
+    assert metrics["zero_std_frac"] == 0.5 and metrics["groups_sampled"] == 4
+
+
+def test_dynamic_sampling_off_samples_once_and_needs_no_refill():
+    policy = train.setup(load_config("smoke"))
+    ro, kept, sampled, rounds, _ = train.sample_batch(policy, _prompts([3, 4]))
+    assert (sampled, rounds) == (2, 1) and ro.completion_ids.shape[0] == 8
+
+
+def test_dynamic_sampling_with_accumulation_gives_the_full_batch_gradient(monkeypatch):
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", _flat_on_odd_targets)
+    grads = []
+    for accum in (1, 2):
+        policy = train.setup(load_config("smoke", dynamic_sampling=True, grad_accum=accum))
+        policy.optimizer.step = lambda *a, **k: None
+        metrics = train.grpo_step(policy, _prompts([3, 4]), refill=lambda k: _prompts([5, 6]))
+        assert metrics["groups_sampled"] == 4 and metrics["zero_std_frac"] == 0
+        grads.append(torch.cat([p.grad.flatten() for p in policy.model.parameters()]))
+    assert grads[0].abs().max() > 0
+    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-8)
+
+
+def test_dynamic_sampling_resumes_bitwise(resume_pair, monkeypatch):
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", _flat_on_odd_targets)
+    (ra, rb), (a, b) = resume_pair(dynamic_sampling=True, overlong_filter=True, digit_sum_min=3,
+                                   digit_sum_max=6)
+    assert sum(r["groups_sampled"] for r in ra) > 4 * 2      # refills happened
+    strip = lambda rs: [{k: v for k, v in r.items() if "time" not in k and k != "tokens_per_s"} for r in rs]
+    assert strip(ra) == strip(rb)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_refill_batches_are_seeded_by_step_and_round():
+    cfg = load_config("smoke")
+    prompts = _prompts(range(3, 13))
+    a, b = train.refill_batch(5, 1, prompts, cfg), train.refill_batch(5, 1, prompts, cfg)
+    assert a == b and len(a) == cfg.prompts_per_step
+    assert train.refill_batch(5, 2, prompts, cfg) != a or train.refill_batch(6, 1, prompts, cfg) != a
+
+
+# --- overlong filtering --------------------------------------------------------------------------
+
+def test_overlong_filter_gives_truncated_completions_no_gradient(monkeypatch):
+    """With every completion truncated (max_new_tokens=1, no EOS yet), the filtered loss has no
+    token left: the gradient is exactly zero. Without the filter it is not."""
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped",
+                        lambda prompts, completions, **kw: [float(i % 3) for i in range(len(completions))])
+    norms = {}
+    for flag in (False, True):
+        policy = train.setup(load_config("smoke", overlong_filter=flag, max_new_tokens=1))
+        policy.optimizer.step = lambda *a, **k: None
+        metrics = train.grpo_step(policy, _prompts([3, 4]))
+        assert metrics["truncated_frac"] == 1.0
+        norms[flag] = sum(float(p.grad.norm()) for p in policy.model.parameters() if p.grad is not None)
+    assert norms[False] > 0 and norms[True] == 0.0
+
+
+def test_overlong_filter_equals_dropping_the_truncated_rows_from_the_loss(tiny_model, tokenizer):
+    """The filtered loss (GRPO aggregation, N counts every sequence) against a hand computation
+    over the finished rows only."""
+    from course_utils.losses import grpo_loss
+    g = torch.Generator().manual_seed(3)
+    ro = rollout(tiny_model, tokenizer, ["Some words here", "More"], group_size=4, max_new_tokens=6,
+                 eos_ids=[tokenizer.eos_token_id], generator=g)
+    ro.truncated = torch.tensor([1, 0, 0, 1, 0, 1, 0, 0]).bool()  # which rows count as cut off
+    adv = torch.randn(8, generator=g)
+    lp, _ = completion_logprobs(tiny_model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
+                                ro.completion_mask, group_size=4)
+    keep = (~ro.truncated).float()
+    lp = lp.detach().requires_grad_()
+    loss, _ = grpo_loss(lp, lp.detach(), adv, ro.completion_mask * keep[:, None], loss_type="grpo")
+    m = ro.completion_mask.float()
+    # on-policy the ratio is 1: the loss is -mean(A) over the finished rows (N counts all rows),
+    # and its gradient with respect to a token's log-prob is -A / (N |o_i|) there, 0 elsewhere
+    assert torch.allclose(loss, -(keep * adv).sum() / 8, atol=1e-6)
+    loss.backward()
+    expected = -(keep * adv / m.sum(-1))[:, None] * m / 8
+    assert torch.allclose(lp.grad, expected, atol=1e-7)
+    assert (lp.grad[ro.truncated] == 0).all()
+
+
+# --- what the evaluation reports -----------------------------------------------------------------
+
+def test_evaluation_splits_targets_by_kind_and_counts_distinct_completions(monkeypatch):
+    policy = train.setup(load_config("smoke"))
+    prompts = [Prompt(text=f"Text {i}", snippet=f"s{i % 2}", target_chars=3, target_digit_sum=t)
+               for i, t in enumerate([5, 11, 7, 12, 3])]
+    fixed = iter(["a5b", "a5b", "xy7", "39z", "3ab"])  # what the "model" writes, prompt by prompt
+
+    def fake_rollout(model, tokenizer, texts, **kw):
+        class R:
+            pass
+        r = R()
+        r.texts = [next(fixed) for _ in texts]
+        return r
+
+    monkeypatch.setattr(train, "rollout", fake_rollout)
+    ev = train.evaluate(policy.model, policy.tokenizer, prompts, policy.cfg, policy.eos_ids, greedy=True)
+    # one-digit targets 5, 7, 3: "a5b" passes, "xy7" passes, "3ab" passes -> 3 of 3
+    # two-digit targets 11, 12: "a5b" fails (5), "39z" passes (12) -> 1 of 2
+    assert (ev["n_one_digit"], ev["n_two_digit"]) == (3, 2)
+    assert ev["pass_both_one_digit"] == 1.0 and ev["pass_both_two_digit"] == 0.5
+    assert ev["pass_both"] == pytest.approx(4 / 5)
+    assert ev["distinct_completions"] == 4 and ev["distinct_snippets"] == 2
+
+
+# --- the ablation runner -------------------------------------------------------------------------
+
+def test_ablation_runs_every_arm_and_reports_each_number_from_its_runs(tmp_path, monkeypatch):
+    import json
+
+    from course_utils import ablation
+    monkeypatch.setattr(ablation, "RUNS", tmp_path / "runs")
+    result = ablation.ablation([0, 1], tmp_path / "out")
+    assert set(result["arms"]) == set(ablation.ARMS)
+    stored = json.loads((tmp_path / "out" / "result.json").read_text())
+    report = (tmp_path / "out" / "report.md").read_text()
+    for arm, row in stored["arms"].items():
+        assert len(row["runs"]) == 2 and arm in report
+        for run in row["runs"]:
+            assert 0 <= run["pass_both"] <= 1 and run["steps"] >= 1 and run["seconds"] > 0
+    assert (tmp_path / "out" / "curves.png").exists()
+    # the second call reuses the finished runs: nothing is trained again
+    monkeypatch.setattr(ablation.train, "train", lambda *a, **k: pytest.fail("retrained a finished run"))
+    ablation.ablation([0, 1], tmp_path / "out2")
+    # report only: seed 2 never ran, so every arm reports the seeds it has, and trains nothing
+    partial = ablation.ablation([0, 1, 2], tmp_path / "out3", train_missing=False)
+    assert all(len(row["runs"]) == 2 for row in partial["arms"].values())
+    assert "| 0, 1 |" in (tmp_path / "out3" / "report.md").read_text()
+
+
+def test_until_something_passes_sharp_gives_the_advantages_of_shaped():
+    """GRPO standardizes each group, so a common factor cancels: while no completion passes,
+    training on 'sharp' is training on 'shaped'."""
+    g = torch.Generator().manual_seed(1)
+    texts = ["7" * int(n) + " x" * int(k) for n, k in torch.randint(0, 12, (16, 2), generator=g)]
+    texts = [t for t in texts if len(t.strip()) != 32][:16]
+    kw = dict(target_chars=[32] * len(texts), target_digit_sum=[7] * len(texts))
+    G = 4
+    n = len(texts) // G * G
+    # eps (1e-4 in training, added to the std) is the one thing not scaled by 2/3: set it tiny
+    sharp = torch.tensor(rewards.sharp_reward(None, texts, **kw), dtype=torch.float64)[:n]
+    shaped = torch.tensor(rewards.shaped_reward(None, texts, **kw), dtype=torch.float64)[:n]
+    a_sharp, _ = group_advantages(sharp, G, eps=1e-12)
+    a_shaped, _ = group_advantages(shaped, G, eps=1e-12)
+    assert torch.allclose(a_sharp, a_shaped, atol=1e-9)
+    assert a_shaped.abs().max() > 0.5
+
+
+def test_diagnosis_of_the_stored_reward_hacking_run():
+    """lesson 5's table of signs, checked against the stored files read independently."""
+    import json
+    from pathlib import Path
+
+    from course_utils import ablation
+    run = Path(__file__).resolve().parents[1] / "notebooks" / "results" / "cpu-shaped"
+    d = ablation.diagnose(run)
+    steps = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    texts = [s["completion"] for s in json.loads((run / "summary.json").read_text())["after"]["greedy"]["samples"]]
+    entropy = [r["entropy"] for r in steps]
+    first_low = min(i + 1 for i in range(len(entropy)) if sum(entropy[max(0, i - 2):i + 1]) / len(entropy[max(0, i - 2):i + 1]) < 0.5)
+    assert d["collapse_step"] == first_low and d["steps"] == len(steps)
+    assert d["distinct"] == len(set(texts)) < len(texts) / 4          # a template
+    assert d["top_count"] == max(texts.count(t) for t in texts)
+    assert d["top_chars"] == len(d["top_completion"].strip()) != 32   # a near miss
+    assert d["pass_both"] == 0.0 and d["zero_std_max"] > 0.5
+
+
+def test_dynamic_sampling_logs_the_pass_rate_before_selection(monkeypatch):
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", _flat_on_odd_targets)
+    policy = train.setup(load_config("smoke", dynamic_sampling=True))
+    metrics = train.grpo_step(policy, _prompts([3, 4]), refill=lambda k: _prompts([5, 6]))
+    assert 0.0 <= metrics["first_round_pass_both"] <= 1.0 and metrics["sampling_rounds"] == 2
