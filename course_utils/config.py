@@ -237,8 +237,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # 5's fixes: the sharp reward (with the binary one, groups that all fail give no gradient;
     # with the shaped one, the policy settles on a near-miss template) and dynamic sampling.
     # No entropy bonus (lesson 6 found the seed's inverse-variance bonus did not help) and
-    # kl_coef 0: a KL term slowed learning in the course's CPU runs, costs a reference forward
-    # per step, and DAPO drops it too; add one (kl_coef=0.04) if the model's language degrades.
+    # kl_coef 0: a KL term costs a reference forward per step, lesson 6's KL track found no
+    # difference in reward with it, and DAPO drops it too; add one (kl_coef=0.04, DeepSeekMath's)
+    # if the model's language degrades.
     "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
                target_chars=64, reward="sharp", dynamic_sampling=True, prompts_per_step=16,
                group_size=8, grad_accum=8, max_new_tokens=64, lr=1e-5, weight_decay=0.01,

@@ -19,7 +19,7 @@ Where the targets come from: for an instruction-tuned model each prompt states i
 ``target_chars`` and ``target_digit_sum`` in the instruction (see ``data.build_prompt``); for a
 base model such as gpt2, which cannot read instructions, both are fixed by the config.
 
-Two rewards are provided, both with TRL's reward-function signature
+Three rewards are provided, all with TRL's reward-function signature
 ``f(prompts, completions, **kwargs) -> list[float]``; the targets arrive as per-completion
 lists in ``kwargs``, exactly as TRL passes extra dataset columns:
 
@@ -28,6 +28,8 @@ lists in ``kwargs``, exactly as TRL passes extra dataset columns:
   met exactly and falling smoothly towards 0 as the miss grows, never reaching it (see
   ``shaped_score``), so a group of different misses always has some spread to learn from.
   It equals 1.0 exactly when ``binary_reward`` does.
+* ``sharp_reward``: 2/3 of the shaped score plus 1/3 of the binary one, so a pass pays clearly
+  more than any near miss (see ``sharp_score``, and lesson 5, section 6, for why).
 """
 
 from __future__ import annotations

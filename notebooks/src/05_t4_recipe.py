@@ -51,9 +51,9 @@ if GPU and "T4" not in GPU:
 # decay 0.01, gradient clipping at 1.0, gradient accumulation, fp16 autocast with fp32 master
 # weights and gradient checkpointing. Two things of the seed's are left out: its entropy bonus
 # scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 6's
-# ablation did not find helpful), and a KL term: `kl_coef=0`, because in the course's CPU runs
-# a KL penalty slowed learning, it costs a reference forward per step, and DAPO drops it as
-# well. If the model's language degrades over a long run, `kl_coef=0.04` (DeepSeekMath's value)
+# ablation did not find helpful), and a KL term: `kl_coef=0`, because it costs a reference
+# forward per step, lesson 6's KL track found no difference in reward with it over its short
+# runs, and DAPO drops it as well. If the model's language degrades over a long run, `kl_coef=0.04` (DeepSeekMath's value)
 # is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
 # prompts, fp32, three steps.
 
