@@ -27,8 +27,8 @@ from .config import load_config, smoke_mode
 # The cpu preset as these tracks were run (the shaped reward, no dynamic sampling: the preset
 # before lesson 5's fixes), shortened to 12 steps of 4 prompts x 8 (2-4 minutes a run on 2
 # cores). Pinned here, so the stored results stay reproducible whatever the preset becomes.
-SHORT = dict(train_prompts=48, eval_prompts=32, save_every=12, reward="shaped",
-             dynamic_sampling=False)
+SHORT = dict(train_prompts=48, max_steps=None, eval_prompts=32, save_every=12, reward="shaped",
+             dynamic_sampling=False, lr=3e-5, max_new_tokens=32)
 SMOKE = dict(model="tiny-qwen2", prompt_tokens=16, prompts_per_step=2, group_size=4,
              max_new_tokens=10, train_prompts=4, eval_prompts=4, save_every=2, lr=1e-3)
 RUNS = Path("runs/tracks")
