@@ -16,11 +16,12 @@ import argparse
 import json
 import math
 import statistics
+from collections import Counter
 from pathlib import Path
 
 from . import train
 from .config import PRESETS, load_config, smoke_mode
-from .tracks import differs, mean_std, plot_curves, records
+from .tracks import differs, finished, plot_curves, records
 
 RUNS = Path("runs/ablation")
 FULL = "full recipe (the cpu preset)"
@@ -46,11 +47,6 @@ def arm_dir(arm: str, seed: int) -> Path:
     return RUNS / ("smoke" if smoke_mode() else "full") / slug / f"seed{seed}"
 
 
-def finished(run_dir: Path) -> bool:
-    done = run_dir / "summary.json"
-    return done.exists() and "after" in json.loads(done.read_text())
-
-
 def run_arm(arm: str, seed: int) -> Path:
     """Train one arm for one seed, or reuse the run if it finished; returns its directory."""
     out = arm_dir(arm, seed)
@@ -73,8 +69,7 @@ def arm_result(run_dir: Path) -> dict:
                 groups_sampled=sum(r.get("groups_sampled", 0) for r in steps),
                 final_entropy=statistics.mean(r["entropy"] for r in tail),
                 final_zero_std_frac=statistics.mean(r["zero_std_frac"] for r in tail),
-                top_completion=max(after["samples"], key=lambda s: sum(
-                    t["completion"] == s["completion"] for t in after["samples"]))["completion"])
+                top_completion=Counter(s["completion"] for s in after["samples"]).most_common(1)[0][0])
 
 
 def diagnose(run_dir: Path, entropy_floor: float = 0.5) -> dict:

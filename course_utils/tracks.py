@@ -41,11 +41,16 @@ def base_settings() -> dict:
     return {**SHORT, **(SMOKE if smoke_mode() else {})}
 
 
+def finished(run_dir: Path) -> bool:
+    """Whether a run got as far as its final evaluation (then it is reused, not retrained)."""
+    summary = Path(run_dir) / "summary.json"
+    return summary.exists() and "after" in json.loads(summary.read_text())
+
+
 def run(name: str, seed: int, **overrides) -> Path:
     """Train one arm for one seed (or reuse it if its summary exists); returns its directory."""
     out = RUNS / ("smoke" if smoke_mode() else "full") / name / f"seed{seed}"
-    summary = out / "summary.json"
-    if summary.exists() and "after" in json.loads(summary.read_text()):
+    if finished(out):
         return out
     train.train(load_config("cpu", seed=seed, out_dir=str(out), **{**base_settings(), **overrides}),
                 progress=False)
