@@ -96,6 +96,12 @@ class RunningMeanBaseline:
 # ---------------------------------------------------------------------------------------------
 
 
+def constant_groups(rewards: torch.Tensor, group_size: int) -> torch.Tensor:
+    """[n_groups, 1] True where a group's G rewards are all equal: no signal, advantage 0."""
+    r = rewards.view(-1, group_size)
+    return r.max(-1, keepdim=True).values == r.min(-1, keepdim=True).values
+
+
 def group_advantages(rewards: torch.Tensor, group_size: int, center: str = "group",
                      scale: str = "group", eps: float = 1e-4) -> tuple[torch.Tensor, int]:
     """Group-relative advantages A_i = (r_i - mean) / (std + eps), and the zero-std group count.
@@ -112,7 +118,7 @@ def group_advantages(rewards: torch.Tensor, group_size: int, center: str = "grou
         raise ValueError(f"rewards must be 1-D with a multiple of group_size={group_size} "
                          f"entries, got shape {tuple(rewards.shape)}")
     r = rewards.view(-1, group_size)
-    constant = r.max(-1, keepdim=True).values == r.min(-1, keepdim=True).values
+    constant = constant_groups(rewards, group_size)
     zero_std_groups = int(constant.sum())
     if center == "group":
         # exactly 0 for an all-equal group: r - mean(r) can be a rounding error (the mean of

@@ -187,12 +187,6 @@ def _all_reduce_gradients(policy: Policy) -> None:
             torch.distributed.all_reduce(param.grad, op=torch.distributed.ReduceOp.SUM)
 
 
-def _has_signal(rewards: torch.Tensor, group_size: int) -> list[bool]:
-    """Per group: do its G rewards differ? A group of equal rewards has advantage 0 everywhere."""
-    r = rewards.view(-1, group_size)
-    return (r.max(-1).values > r.min(-1).values).tolist()
-
-
 def sample_batch(policy: Policy, prompts: list[data.Prompt],
                  refill: typing.Callable[[int], list[data.Prompt]] | None = None):
     """Sample G completions for each prompt; with ``cfg.dynamic_sampling`` (DAPO), keep only
@@ -227,7 +221,7 @@ def sample_batch(policy: Policy, prompts: list[data.Prompt],
     while True:
         rounds += 1
         sampled += len(batch)
-        for g, signal in enumerate(_has_signal(rewards, G)):
+        for g, signal in enumerate((~losses.constant_groups(rewards, G)).squeeze(-1).tolist()):
             (kept if signal else spare).append((ro, g, batch[g]))
         if len(kept) >= B or rounds == cfg.max_sampling_rounds:
             break
