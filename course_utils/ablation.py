@@ -85,7 +85,7 @@ def diagnose(run_dir: Path, entropy_floor: float = 0.5) -> dict:
     collapse = next((i + 1 for i, e in enumerate(smoothed) if e < entropy_floor), None)
     after = summary["after"]["greedy"]
     texts = [s["completion"] for s in after["samples"]]
-    top = max(set(texts), key=texts.count)
+    top = Counter(texts).most_common(1)[0][0]  # ties: the first met, so the same every run
     last = steps[-5:]
     # dynamic sampling's cost: groups sampled beyond the batch's own, before and after the
     # entropy fell below the floor (0 for runs without it, or logged before it existed)
@@ -105,6 +105,52 @@ def diagnose(run_dir: Path, entropy_floor: float = 0.5) -> dict:
                 pass_digits=after["pass_digits"])
 
 
+# How a single-seed probe of a lever ended, judged on its last 5 steps (lesson 5, 6.3).
+COLLAPSED = dict(max_distinct_frac=0.25, max_entropy=0.2)   # one sentence for every prompt
+CAP_FILLING = dict(min_truncated_frac=0.9)                  # text cut off at max_new_tokens
+
+
+def probe_outcome(steps: list[dict]) -> str:
+    """Name how a run's last 5 steps look: collapsed onto one sentence, filling the token cap,
+    or still exploring (the rules are COLLAPSED and CAP_FILLING above)."""
+    last = steps[-5:]
+    mean = lambda key: statistics.mean(r[key] for r in last)  # noqa: E731
+    if mean("distinct_frac") <= COLLAPSED["max_distinct_frac"] and \
+            mean("entropy") <= COLLAPSED["max_entropy"]:
+        return "collapsed onto one sentence"
+    if mean("truncated_frac") >= CAP_FILLING["min_truncated_frac"]:
+        return "filling the token cap"
+    return "still exploring"
+
+
+def probes(folder: Path) -> str:
+    """A markdown table of single-seed probes of other levers (one run per sub-folder, each the
+    cpu preset with the changes its config.json records), read from their stored files."""
+    preset = load_config("cpu").to_dict()
+    ignore = {"seed", "out_dir", "max_steps"}
+    lines = ["| change to the cpu preset | seed | steps run | sampled pass (both), last 5 steps | "
+             "length pass (batch trained on), last 5 | entropy, last 5 | distinct completions per "
+             "batch, last 5 | "
+             "how it ended | held-out greedy pass (both) |", "|" + "---|" * 9]
+    for run in sorted(p for p in Path(folder).iterdir() if (p / "metrics.jsonl").exists()):
+        config = json.loads((run / "config.json").read_text())
+        steps = records(run)
+        last = steps[-5:]
+        mean = lambda key: statistics.mean(r[key] for r in last)  # noqa: E731
+        change = ", ".join(f"{k} {config[k]}" for k in config if k not in ignore and config[k] != preset[k])
+        summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else {}
+        held_out = "not evaluated (stopped by hand)"
+        if "after" in summary:
+            after = summary["after"]["greedy"]
+            top = Counter(x["completion"] for x in after["samples"]).most_common(1)[0][0]
+            held_out = f"{after['pass_both']:.1%}, most often `{top.strip().replace('|', '/')}`"
+        lines.append(f"| {change} | {config['seed']} | {len(steps)} of {config['max_steps']} | "
+                     f"{mean('first_round_pass_both'):.1%} | {mean('pass_length'):.1%} | "
+                     f"{mean('entropy'):.2f} | {mean('distinct_frac'):.0%} | {probe_outcome(steps)} | "
+                     f"{held_out} |")
+    return "\n".join(lines) + "\n"
+
+
 def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
              train_missing: bool = True) -> dict:
     """Train (or reuse) every arm for every seed, then write the report; ``arms`` restricts
@@ -121,7 +167,7 @@ def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
         dirs = {arm: [arm_dir(arm, s) for s in seeds if finished(arm_dir(arm, s))] for arm in chosen}
         dirs = {arm: ds for arm, ds in dirs.items() if ds}
     results = {arm: [arm_result(d) for d in ds] for arm, ds in dirs.items()}
-    plot_curves(dirs, [("pass_both", "training pass rate (both)"), ("entropy", "entropy (nats/token)"),
+    plot_curves(dirs, [("first_round_pass_both", "sampled pass rate (both), before selection"), ("entropy", "entropy (nats/token)"),
                        ("zero_std_frac", "groups without signal"), ("chars_abs_error", "|chars - 32|")],
                 out / "curves.png")
     header = ("| arm | seeds | both constraints, per seed | " + " | ".join(label for _, label, _ in METRICS) +

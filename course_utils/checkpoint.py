@@ -16,6 +16,8 @@ from pathlib import Path
 
 import torch
 
+from .config import Config
+
 STATE_FILE = "trainer_state.pt"
 # Fields that may change when a run is resumed; any other difference means a different run.
 RESUMABLE_CHANGES = {"out_dir", "max_steps", "epochs", "eval_every", "save_every", "eval_prompts"}
@@ -56,7 +58,9 @@ def find(run_dir: Path) -> Path | None:
 def load_state(path: Path, config: dict) -> dict:
     """Trainer state from a checkpoint, refusing one written by an incompatible config."""
     state = torch.load(Path(path) / STATE_FILE, weights_only=True)
-    saved = state.get("config", {})
+    # A setting added to Config after the checkpoint was written was at its default then.
+    defaults = Config().to_dict()
+    saved = {**{k: v for k, v in defaults.items() if k in config}, **state.get("config", {})}
     different = sorted(k for k in set(saved) | set(config)
                        if k not in RESUMABLE_CHANGES and saved.get(k) != config.get(k))
     if different:

@@ -113,6 +113,9 @@ class Config:
     # --- engineering ---------------------------------------------------------------------------
     precision: str = _f("fp32", "fp32 everywhere, or fp16/bf16 autocast with fp32 master weights "
                                 "(fp16 uses a gradient scaler; it needs a GPU)", ("fp32", "fp16", "bf16"))
+    device: str = _f("auto", "'auto': a GPU if there is one (accelerate's choice: CUDA, or MPS on "
+                             "Apple Silicon); 'cpu': always the CPU, so a CPU run is the same "
+                             "run on every machine", ("auto", "cpu"))
     gradient_checkpointing: bool = _f(False, "recompute activations in the backward pass (saves memory)")
     eval_every: int = _f(0, "evaluate on held-out prompts every N steps (0: only before and after)")
     save_every: int = _f(50, "write a checkpoint every N steps (and always at the end)")
@@ -205,8 +208,13 @@ class Config:
              "max_sampling_rounds", "must be an integer >= 1")
         need(self.eval_every >= 0, "eval_every", "must be >= 0")
         need(self.save_every >= 1, "save_every", "must be >= 1")
-        need(self.precision != "fp16" or _cuda_available(), "precision",
+        need(self.precision != "fp16" or (self.device != "cpu" and _cuda_available()), "precision",
              "fp16 needs a CUDA GPU; use fp32 on a CPU")
+        capability = _cuda_capability() if self.precision == "bf16" and self.device != "cpu" else None
+        need(capability is None or capability >= (8, 0), "precision",
+             f"bf16 needs a GPU of compute capability 8.0 or newer; this one is "
+             f"{'.'.join(map(str, capability or ()))} (a T4 is 7.5), where torch reports bf16 as "
+             f"supported and then emulates it slowly: use precision='fp16'")
         need(self.optimizer != "adamw_8bit" or importlib.util.find_spec("bitsandbytes") is not None,
              "optimizer", "'adamw_8bit' needs bitsandbytes: pip install bitsandbytes (on a GPU "
              "machine), or use optimizer='adamw'")
@@ -226,6 +234,12 @@ class ConfigError(ValueError):
 def _cuda_available() -> bool:
     import torch  # imported here so that validating a config stays cheap
     return torch.cuda.is_available()
+
+
+def _cuda_capability() -> tuple[int, int] | None:
+    """The first CUDA GPU's compute capability, or None without one."""
+    import torch
+    return tuple(torch.cuda.get_device_capability(0)) if torch.cuda.is_available() else None
 
 
 # Presets are data: overrides on top of the defaults above.
@@ -257,7 +271,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # most groups have no signal and more rounds only cost generation. 24 new tokens leave
     # room for 32 characters (about 8 tokens) and keep the first, long completions cheap.
     # 48 steps of a 256-prompt epoch: the budget of 15 minutes, install included.
-    "cpu": dict(model="smollm2-135m-instruct", prompt_source="offline", prompt_tokens=32,
+    "cpu": dict(model="smollm2-135m-instruct", device="cpu", prompt_source="offline", prompt_tokens=32,
                 target_chars=32, digit_sum_min=3, digit_sum_max=12, reward="sharp",
                 dynamic_sampling=True, max_sampling_rounds=2, prompts_per_step=4, group_size=8,
                 max_new_tokens=24, lr=6e-5, train_prompts=256, max_steps=48, epochs=1,

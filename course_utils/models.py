@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import importlib.util
 import os
 import shutil
@@ -49,10 +50,33 @@ def gguf_path() -> Path:
     return path
 
 
+def embedded_cache() -> Path:
+    """The converted SmolLM2's folder, one per transformers version: what a conversion writes
+    (the tokenizer class especially) is read back correctly only by the version that wrote it
+    (a cache written by transformers 5 breaks 4: "Tokenizer class TokenizersBackend does not
+    exist"), so two environments sharing a home folder must not share a cache."""
+    return cache_dir() / f"{EMBEDDED}-transformers-{importlib.metadata.version('transformers')}"
+
+
+def gguf_special_token_ids(path: Path) -> dict[str, int]:
+    """The bos/eos/padding token ids the GGUF file itself declares (its ``tokenizer.ggml.*``
+    fields). transformers before 5.18 converts SmolLM2's tokenizer with ``<|im_start|>`` (id 1) as
+    its EOS and pad token; the file says ``<|im_end|>`` (id 2), and so does the model's training."""
+    from gguf import GGUFReader
+
+    fields = GGUFReader(path).fields
+    ids = {}
+    for name, key in (("bos", "bos_token_id"), ("eos", "eos_token_id"), ("pad", "padding_token_id")):
+        field = fields.get(f"tokenizer.ggml.{key}")
+        if field is not None:  # a scalar field's value is the part its data index points at
+            ids[name] = int(field.parts[field.data[0]][0])
+    return ids
+
+
 def check_available(name: str) -> None:
     """Fail fast (before any loading) if ``name`` cannot possibly be loaded here."""
     if name in (EMBEDDED, "embedded", TINY):
-        if not (cache_dir() / EMBEDDED / "config.json").exists():
+        if not (embedded_cache() / "config.json").exists():
             gguf_path()
     else:
         try:
@@ -63,7 +87,7 @@ def check_available(name: str) -> None:
 
 def embedded_model_dir() -> Path:
     """Directory of the converted SmolLM2 (model + tokenizer); converts once on first use."""
-    target = cache_dir() / EMBEDDED
+    target = embedded_cache()
     if (target / "config.json").exists() and (target / "tokenizer_config.json").exists():
         return target
     source = gguf_path()
@@ -71,6 +95,9 @@ def embedded_model_dir() -> Path:
 
     print(f"[course_utils] converting {source.name} once (about 20 s); cached at {target}")
     tokenizer = AutoTokenizer.from_pretrained(source.parent, gguf_file=source.name)
+    special = gguf_special_token_ids(source)
+    for name, token_id in special.items():  # the file's own ids, whatever this version guessed
+        setattr(tokenizer, f"{name}_token", tokenizer.convert_ids_to_tokens(token_id))
     gguf_model = AutoModelForCausalLM.from_pretrained(source.parent, gguf_file=source.name,
                                                       dtype=torch.float32)
     config = gguf_model.config
@@ -79,6 +106,9 @@ def embedded_model_dir() -> Path:
     plain = LlamaForCausalLM(config)
     plain.load_state_dict(gguf_model.state_dict())
     plain.generation_config = gguf_model.generation_config
+    for name, token_id in special.items():
+        setattr(plain.config, f"{name}_token_id", token_id)
+        setattr(plain.generation_config, f"{name}_token_id", token_id)
     # Write to a temporary directory and rename, so an interrupted conversion leaves no half
     # a model that would be taken for a whole one next time.
     target.parent.mkdir(parents=True, exist_ok=True)

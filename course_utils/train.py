@@ -377,15 +377,17 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
 def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
     """Load tokenizer, policy (and reference model if kl_coef > 0), optimizer and scheduler."""
     from accelerate import Accelerator
-    from accelerate.state import AcceleratorState
+    from accelerate.state import AcceleratorState, PartialState
 
     torch.manual_seed(cfg.seed)
     mixed = {"fp32": "no", "fp16": "fp16", "bf16": "bf16"}[cfg.precision]
-    if AcceleratorState._shared_state.get("_mixed_precision", mixed) != mixed:
+    cpu = cfg.device == "cpu"
+    device_changed = PartialState._shared_state.get("_cpu", cpu) != cpu
+    if AcceleratorState._shared_state.get("_mixed_precision", mixed) != mixed or device_changed:
         # accelerate keeps one configuration per process; without this, a notebook that trains
-        # again with another precision would be told to restart its runtime.
-        AcceleratorState._reset_state()
-    accelerator = Accelerator(mixed_precision=mixed)
+        # again with another precision or device would be told to restart its runtime.
+        AcceleratorState._reset_state(reset_partial_state=device_changed)
+    accelerator = Accelerator(mixed_precision=mixed, cpu=cpu)
     tokenizer = models.load_tokenizer(cfg.model)
     if cfg.lora_rank:  # the base weights always come from cfg.model; a checkpoint holds adapters
         model = models.load_policy(cfg.model, seed=cfg.seed)

