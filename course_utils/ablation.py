@@ -129,9 +129,8 @@ def probes(folder: Path) -> str:
     preset = load_config("cpu").to_dict()
     ignore = {"seed", "out_dir", "max_steps"}
     lines = ["| change to the cpu preset | seed | steps run | sampled pass (both), last 5 steps | "
-             "length pass (batch trained on), last 5 | entropy, last 5 | distinct completions per "
-             "batch, last 5 | "
-             "how it ended | held-out greedy pass (both) |", "|" + "---|" * 9]
+             "length pass (batch trained on), last 5 | entropy, last 5 | distinct completions "
+             "per batch, last 5 | how it ended | held-out greedy pass (both) |", "|" + "---|" * 9]
     for run in sorted(p for p in Path(folder).iterdir() if (p / "metrics.jsonl").exists()):
         config = json.loads((run / "config.json").read_text())
         steps = records(run)
@@ -167,9 +166,9 @@ def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
         dirs = {arm: [arm_dir(arm, s) for s in seeds if finished(arm_dir(arm, s))] for arm in chosen}
         dirs = {arm: ds for arm, ds in dirs.items() if ds}
     results = {arm: [arm_result(d) for d in ds] for arm, ds in dirs.items()}
-    plot_curves(dirs, [("first_round_pass_both", "sampled pass rate (both), before selection"), ("entropy", "entropy (nats/token)"),
-                       ("zero_std_frac", "groups without signal"), ("chars_abs_error", "|chars - 32|")],
-                out / "curves.png")
+    plot_curves(dirs, [("first_round_pass_both", "sampled pass rate (both), before selection"),
+                       ("entropy", "entropy (nats/token)"), ("zero_std_frac", "groups without signal"),
+                       ("chars_abs_error", "|chars - 32|")], out / "curves.png")
     header = ("| arm | seeds | both constraints, per seed | " + " | ".join(label for _, label, _ in METRICS) +
               " | seconds | groups sampled |")
     lines = [header, "|" + "---|" * (len(METRICS) + 5)]
