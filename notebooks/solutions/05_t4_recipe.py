@@ -506,8 +506,8 @@ for key, value in mine.items():
 # noise. A higher learning rate committed earlier still, to a sentence without the digit; two
 # updates per batch with clip-higher was on its way there when it was stopped (its entropy and
 # its share of distinct completions were falling). The KL term and overlong filtering kept the
-# policy exploring, and had found few or no passes when they were stopped. Every lever moves the point at which the policy commits; none decides *what* it
-# commits to. That is the honest state of this recipe at this budget, and the way to read any
+# policy exploring, and had found few or no passes when they were stopped. Every lever moves
+# the point at which the policy commits; none decides *what* it commits to. That is the honest state of this recipe at this budget, and the way to read any
 # single-seed result, including your own.
 #
 # ### 6.4 What the fixed run learned, read honestly
