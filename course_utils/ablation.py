@@ -57,19 +57,29 @@ def run_arm(arm: str, seed: int) -> Path:
     return out
 
 
+def tail_mean(steps: list[dict], key: str, n: int = 5) -> float:
+    """A metric at the end of a run: its mean over the last ``n`` logged steps."""
+    return statistics.mean(r[key] for r in steps[-n:])
+
+
+def top_completion(samples: list[dict]) -> str:
+    """The most frequent completion among evaluation samples (ties: the first met, so the
+    same on every run)."""
+    return Counter(s["completion"] for s in samples).most_common(1)[0][0]
+
+
 def arm_result(run_dir: Path) -> dict:
     """The numbers of one run: held-out greedy metrics after training, and its cost."""
     summary = json.loads((run_dir / "summary.json").read_text())
     steps = records(run_dir)
     after = summary["after"]["greedy"]
-    tail = steps[-5:]
     return dict(**{key: after[key] for key, _, _ in METRICS},
                 before_pass_both=summary["before"]["greedy"]["pass_both"],
                 seconds=summary.get("seconds"), steps=len(steps),
                 groups_sampled=sum(r.get("groups_sampled", 0) for r in steps),
-                final_entropy=statistics.mean(r["entropy"] for r in tail),
-                final_zero_std_frac=statistics.mean(r["zero_std_frac"] for r in tail),
-                top_completion=Counter(s["completion"] for s in after["samples"]).most_common(1)[0][0])
+                final_entropy=tail_mean(steps, "entropy"),
+                final_zero_std_frac=tail_mean(steps, "zero_std_frac"),
+                top_completion=top_completion(after["samples"]))
 
 
 def diagnose(run_dir: Path, entropy_floor: float = 0.5) -> dict:
@@ -85,19 +95,18 @@ def diagnose(run_dir: Path, entropy_floor: float = 0.5) -> dict:
     collapse = next((i + 1 for i, e in enumerate(smoothed) if e < entropy_floor), None)
     after = summary["after"]["greedy"]
     texts = [s["completion"] for s in after["samples"]]
-    top = Counter(texts).most_common(1)[0][0]  # ties: the first met, so the same every run
-    last = steps[-5:]
+    top = top_completion(after["samples"])
     # dynamic sampling's cost: groups sampled beyond the batch's own, before and after the
     # entropy fell below the floor (0 for runs without it, or logged before it existed)
     B = json.loads((run_dir / "config.json").read_text())["prompts_per_step"]
     extra = [r.get("groups_sampled", B) - B for r in steps]
     split = (collapse or len(steps) + 1) - 1
-    return dict(steps=len(steps), entropy_start=entropy[0], entropy_end=statistics.mean(entropy[-5:]),
+    return dict(steps=len(steps), entropy_start=entropy[0], entropy_end=tail_mean(steps, "entropy"),
                 collapse_step=collapse, entropy_floor=entropy_floor,
-                zero_std_end=statistics.mean(r["zero_std_frac"] for r in last),
+                zero_std_end=tail_mean(steps, "zero_std_frac"),
                 zero_std_max=max(r["zero_std_frac"] for r in steps),
                 tokens_start=steps[0]["completion_tokens"],
-                tokens_end=statistics.mean(r["completion_tokens"] for r in last),
+                tokens_end=tail_mean(steps, "completion_tokens"),
                 extra_groups_before=sum(extra[:split]), extra_groups_after=sum(extra[split:]),
                 held_out=len(texts), distinct=len(set(texts)), top_completion=top,
                 top_count=texts.count(top), top_chars=len(top.strip()),
@@ -113,12 +122,10 @@ CAP_FILLING = dict(min_truncated_frac=0.9)                  # text cut off at ma
 def probe_outcome(steps: list[dict]) -> str:
     """Name how a run's last 5 steps look: collapsed onto one sentence, filling the token cap,
     or still exploring (the rules are COLLAPSED and CAP_FILLING above)."""
-    last = steps[-5:]
-    mean = lambda key: statistics.mean(r[key] for r in last)  # noqa: E731
-    if mean("distinct_frac") <= COLLAPSED["max_distinct_frac"] and \
-            mean("entropy") <= COLLAPSED["max_entropy"]:
+    if tail_mean(steps, "distinct_frac") <= COLLAPSED["max_distinct_frac"] and \
+            tail_mean(steps, "entropy") <= COLLAPSED["max_entropy"]:
         return "collapsed onto one sentence"
-    if mean("truncated_frac") >= CAP_FILLING["min_truncated_frac"]:
+    if tail_mean(steps, "truncated_frac") >= CAP_FILLING["min_truncated_frac"]:
         return "filling the token cap"
     return "still exploring"
 
@@ -134,15 +141,14 @@ def probes(folder: Path) -> str:
     for run in sorted(p for p in Path(folder).iterdir() if (p / "metrics.jsonl").exists()):
         config = json.loads((run / "config.json").read_text())
         steps = records(run)
-        last = steps[-5:]
-        mean = lambda key: statistics.mean(r[key] for r in last)  # noqa: E731
+        mean = lambda key: tail_mean(steps, key)  # noqa: E731
         change = ", ".join(f"{k} {config[k]}" for k in config if k not in ignore and config[k] != preset[k])
         summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else {}
         held_out = "not evaluated (stopped by hand)"
         if "after" in summary:
             after = summary["after"]["greedy"]
-            top = Counter(x["completion"] for x in after["samples"]).most_common(1)[0][0]
-            held_out = f"{after['pass_both']:.1%}, most often `{top.strip().replace('|', '/')}`"
+            top = top_completion(after["samples"]).strip().replace("|", "/")
+            held_out = f"{after['pass_both']:.1%}, most often `{top}`"
         lines.append(f"| {change} | {config['seed']} | {len(steps)} of {config['max_steps']} | "
                      f"{mean('first_round_pass_both'):.1%} | {mean('pass_length'):.1%} | "
                      f"{mean('entropy'):.2f} | {mean('distinct_frac'):.0%} | {probe_outcome(steps)} | "
