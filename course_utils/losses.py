@@ -117,6 +117,10 @@ def group_advantages(rewards: torch.Tensor, group_size: int, center: str = "grou
     if rewards.dim() != 1 or rewards.numel() % group_size:
         raise ValueError(f"rewards must be 1-D with a multiple of group_size={group_size} "
                          f"entries, got shape {tuple(rewards.shape)}")
+    if center == "batch" and scale == "group":
+        raise ValueError("center='batch' with scale='group' divides an all-equal group's "
+                         "batch-centred rewards by its std of 0 (+ eps); use scale='batch' (the "
+                         "seed's whole-batch standardization) or scale='none'")
     r = rewards.view(-1, group_size)
     constant = constant_groups(rewards, group_size)
     zero_std_groups = int(constant.sum())

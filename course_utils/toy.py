@@ -116,7 +116,9 @@ def train_toy(method: str, steps: int = 200, prompts_per_step: int = 16, group_s
     """Train a fresh CharPolicy with one method on the same budget of samples per step.
 
     method: "reinforce" (no baseline), "batch_mean", "rloo" (leave-one-out within the group),
-    or "grpo" (group mean and std). Every method sees prompts_per_step x group_size samples per
+    or "grpo" (group mean and std, in GRPO's clipped objective averaged over each completion's
+    tokens; with one update per batch the ratio is 1 and the clip never binds). The other three
+    use the REINFORCE loss summed over tokens. Every method sees prompts_per_step x group_size samples per
     step, so the comparison is on equal terms. Returns the curves: mean training reward and the
     held-out greedy pass rate (both constraints) every ``eval_every`` steps.
     """
@@ -141,7 +143,10 @@ def train_toy(method: str, steps: int = 200, prompts_per_step: int = 16, group_s
         else:
             raise ValueError(f"unknown method {method!r}")
         logp, _ = policy.log_probs(prompts, tokens)
-        loss = losses.reinforce_loss(logp, weights, mask)
+        if method == "grpo":  # the objective of lesson 4, section 1: ratio, clip and 1/|o_i|
+            loss, _ = losses.grpo_loss(logp, logp.detach(), weights, mask, loss_type="grpo")
+        else:
+            loss = losses.reinforce_loss(logp, weights, mask)
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -52,8 +52,9 @@ def run(name: str, seed: int, **overrides) -> Path:
     out = RUNS / ("smoke" if smoke_mode() else "full") / name / f"seed{seed}"
     if finished(out):
         return out
+    # a progress bar for real runs (minutes each); none in smoke mode, where runs take seconds
     train.train(load_config("cpu", seed=seed, out_dir=str(out), **{**base_settings(), **overrides}),
-                progress=False)
+                progress=not smoke_mode())
     return out
 
 

@@ -544,8 +544,10 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     summary["after"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids,
                                        greedy=mode == "greedy") for mode in ("sampled", "greedy")}
     summary["steps"] = total
-    # wall time of this invocation (of the whole run unless it was resumed), evaluation included
-    summary["seconds"] = time.perf_counter() - started
+    # wall time, evaluation included, summed over the invocations that finished: a run that
+    # finished and was then extended (--resume with a larger --max_steps) adds this one's time
+    # to the first; an invocation that crashed wrote no time, so its lost work is not counted
+    summary["seconds"] = summary.get("seconds", 0.0) + time.perf_counter() - started
     summary["resumed"] = bool(state)
     summary_path.write_text(json.dumps(summary, indent=2))
     from .plots import plot_metrics

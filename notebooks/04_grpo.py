@@ -90,8 +90,10 @@ torch.manual_seed(0)
 # The group mean is a baseline (lesson 3) computed from the group; dividing by the group's
 # standard deviation puts every prompt's advantages on the same scale, whether its rewards
 # differ by 0.01 or by 1. Statistics are taken **per prompt**: an easy prompt's completions are
-# compared with each other, not with a hard prompt's. (Standardizing over the whole batch is a
-# different estimator, with a prompt-difficulty bias; the learner tracks measure it.)
+# compared with each other, not with a hard prompt's. Centring per prompt gives each prompt its
+# own baseline, which lowers the noise and, like any baseline, leaves the direction alone. The
+# division by the group's std is a different matter: it is what makes a prompt's weight depend on
+# how hard the prompt is, and the cell after exercise 4.1 computes that weight exactly.
 #
 # ### Exercise 4.1 — group advantages
 #
@@ -140,7 +142,60 @@ for kind in ("binary", "shaped"):
 # and drop the zero-std groups until the batch is full of groups that carry signal. The
 # training metrics of `course_utils` log the fraction of zero-std groups at every step
 # (`zero_std_frac`) for this reason.
-#
+
+# %% [markdown]
+# **What the std division does to a prompt's weight.** Take one prompt that the policy passes
+# with probability $p$, a binary reward, and a policy with one logit $z$ for passing, so the
+# exact gradient of the pass rate is $\partial p / \partial z = p(1-p)$. In a group of $G$ with
+# $k$ passes, a pass has advantage $(1 - k/G)/\sigma_k$ and score $\partial \log\pi/\partial z
+# = 1-p$, a failure $(-k/G)/\sigma_k$ and score $-p$, where $\sigma_k$ is the group's std; the
+# group's average of advantage times score simplifies to $k(G-k)/(G^2 \sigma_k)$. The cell
+# averages it over the binomial distribution of $k$ (groups with $k = 0$ or $G$ give 0) and divides
+# by the exact gradient: that ratio is the weight GRPO gives the prompt. Without the std
+# division (Dr. GRPO, `advantage_scale="none"`) the same sum is $(G-1)/G \cdot p(1-p)$ for
+# every $p$: the same weight for every prompt. A Monte Carlo run of `losses.group_advantages`
+# checks the enumeration.
+
+# %%
+from math import comb
+
+
+def expected_update(p, G, divide_by_std, eps=1e-4):
+    """E[ (1/G) sum_i A_i * dlog pi(o_i)/dz ] for one prompt, by enumerating the passes k."""
+    total = 0.0
+    for k in range(1, G):                       # k = 0 or G: all equal, advantage 0
+        sigma = (k * (G - k) / (G * (G - 1))) ** 0.5 + eps if divide_by_std else 1.0
+        total += comb(G, k) * p**k * (1 - p) ** (G - k) * k * (G - k) / (G**2 * sigma)
+    return total
+
+
+G = 8
+prompt_weight = {}
+print("pass probability p | GRPO weight | Dr. GRPO weight (no std) | GRPO, Monte Carlo")
+for p_pass in (0.05, 0.2, 0.5, 0.8, 0.95):
+    exact = p_pass * (1 - p_pass)
+    passes = (torch.rand(20_000 if SMOKE else 200_000, G, generator=torch.Generator().manual_seed(0))
+              < p_pass).double()
+    A_mc, _ = losses.group_advantages(passes.reshape(-1), G)
+    score = torch.where(passes.reshape(-1) == 1, 1 - p_pass, -p_pass)
+    mc = float((A_mc * score).view(-1, G).mean(-1).mean())
+    w_grpo, w_dr = (expected_update(p_pass, G, d) / exact for d in (True, False))
+    print(f"{p_pass:18.2f} | {w_grpo:11.3f} | {w_dr:24.3f} | {mc / exact:.3f}")
+    assert abs(w_dr - (G - 1) / G) < 1e-12
+    assert abs(mc / exact - w_grpo) < 0.05 * w_grpo
+    prompt_weight[p_pass] = w_grpo
+w = prompt_weight  # larger towards both ends, smallest at p = 0.5
+assert w[0.05] > w[0.2] > w[0.5] < w[0.8] < w[0.95]
+
+# %% [markdown]
+# The weights grow towards both ends: a prompt the policy almost always fails, or almost always
+# passes, has a small group std, and dividing by it scales its rare differences up. Dr. GRPO
+# (arXiv 2503.20783) calls this a question-level difficulty bias. Standardizing over the whole
+# batch instead divides every prompt by the *same* number, so it changes the size of the update,
+# not the balance between prompts; lesson 6 measures all four choices against the exact
+# gradient of a small multi-prompt problem, and finds the same thing there.
+
+# %% [markdown]
 # ## 3. The ratio and its clip
 #
 # After the first gradient step on a batch, $\pi_\theta$ is no longer the policy that sampled it.
@@ -194,7 +249,8 @@ plt.tight_layout(); plt.show()
 # $$\mathbb{D}^{(t)}_{\text{KL}} = \frac{\pi_{\text{ref}}(o_t)}{\pi_\theta(o_t)} - \log\frac{\pi_{\text{ref}}(o_t)}{\pi_\theta(o_t)} - 1 .$$
 #
 # It is never negative ($x - \log x - 1 \ge 0$) and, for tokens sampled from $\pi_\theta$, its mean
-# is the exact KL.
+# is the exact KL. That is a statement about its *value*. In the loss, what acts on the policy
+# is its *gradient*, and section 4's last cell shows that the two are different questions.
 #
 # ### Exercise 4.3 — the k3 estimate
 
@@ -217,6 +273,59 @@ k3 = k3_kl(p.log()[samples], q.log()[samples])
 print(f"exact KL {exact_kl:.4f} | k1 mean {k1.mean():.4f} (negative on {float((k1 < 0).float().mean()):.0%} of tokens) "
       f"| k3 mean {k3.mean():.4f} (min {k3.min():.4f})")
 assert abs(k3.mean() - exact_kl) < 4 * k3.std() / len(samples) ** 0.5 and k3.min() >= 0
+
+# %% [markdown]
+# **Value versus gradient.** In a loss, the sampled token is data: autograd differentiates the
+# log-probabilities at that token and nothing else. So what a penalty term does on average is
+# $\mathbb{E}_{o \sim \pi_\theta}[\nabla_\theta k(o)]$ with $o$ held fixed. On the same $p$
+# and $q$, with $p = \mathrm{softmax}(\theta)$, the cell enumerates the four tokens and compares
+# that expectation with the gradients of both KL directions (autograd on the exact sums), for k1,
+# for k3, and for k2 $= \tfrac12 (\log \pi_\theta - \log \pi_{\text{ref}})^2$:
+#
+# - $\nabla k1 = \nabla \log \pi_\theta(o)$, whose mean under $\pi_\theta$ is exactly 0: as a loss
+#   term k1 does nothing on average, whatever the KL is.
+# - $\nabla k3 = (1 - \pi_{\text{ref}}(o)/\pi_\theta(o))\,\nabla \log \pi_\theta(o)$, whose mean is
+#   $-\sum_o \pi_{\text{ref}}(o) \nabla \log \pi_\theta(o) = \nabla \mathrm{KL}(\pi_{\text{ref}} \| \pi_\theta)$:
+#   the gradient of the *other* direction of the KL.
+# - $\nabla k2 = \log(\pi_\theta/\pi_{\text{ref}})\,\nabla \log \pi_\theta(o)$, whose mean is
+#   $\nabla \mathrm{KL}(\pi_\theta \| \pi_{\text{ref}})$.
+#
+# Both KL directions are zero at $\pi_\theta = \pi_{\text{ref}}$ and grow away from it, so k3 in
+# the loss still pulls the policy towards the reference; it just follows the gradient of
+# $\mathrm{KL}(\pi_{\text{ref}} \| \pi_\theta)$, which punishes dropping tokens the reference
+# likes more than adding tokens it does not. Schulman's note on KL approximators is about values;
+# analyses of KL estimators in GRPO (2025) make this point about gradients.
+
+# %%
+theta = p.log().clone().requires_grad_(True)      # logits whose softmax is p
+log_pi, log_ref = torch.log_softmax(theta, -1), q.log()
+
+
+def expected_grad(k_of_token):
+    """sum_o pi(o) * d k(o) / d theta, the token o held fixed (what a loss term does on average)."""
+    pi = log_pi.exp().detach()
+    return sum(pi[o] * torch.autograd.grad(k_of_token(o), theta, retain_graph=True)[0]
+               for o in range(len(q)))
+
+
+estimators = {
+    "k1": lambda o: log_pi[o] - log_ref[o],
+    "k2": lambda o: 0.5 * (log_pi[o] - log_ref[o]) ** 2,
+    "k3": lambda o: k3_kl(log_pi[o], log_ref[o]),
+}
+kl_forward = (log_pi.exp() * (log_pi - log_ref)).sum()       # KL(pi_theta || pi_ref)
+kl_reverse = (log_ref.exp() * (log_ref - log_pi)).sum()      # KL(pi_ref || pi_theta)
+grad_forward = torch.autograd.grad(kl_forward, theta, retain_graph=True)[0]
+grad_reverse = torch.autograd.grad(kl_reverse, theta, retain_graph=True)[0]
+print("grad KL(pi_theta || pi_ref):", [round(v, 4) for v in grad_forward.tolist()])
+print("grad KL(pi_ref || pi_theta):", [round(v, 4) for v in grad_reverse.tolist()])
+mean_grads = {name: expected_grad(k) for name, k in estimators.items()}
+for name, g in mean_grads.items():
+    print(f"E[grad {name}]:                ", [round(v, 4) for v in g.tolist()])
+assert torch.allclose(mean_grads["k1"], torch.zeros(4), atol=1e-7)
+assert torch.allclose(mean_grads["k3"], grad_reverse, atol=1e-6)
+assert torch.allclose(mean_grads["k2"], grad_forward, atol=1e-6)
+assert not torch.allclose(grad_forward, grad_reverse, atol=1e-3)
 
 # %% [markdown]
 # ## 5. Averaging the per-token loss, and the length bias
@@ -291,7 +400,11 @@ assert difference < 1e-6
 # Each method trains a fresh toy policy with the same number of samples per step (16 prompts x 8
 # completions), the same optimizer and learning rate, over several seeds. "REINFORCE" uses the
 # raw reward, "batch mean" subtracts the batch's mean reward, "RLOO" the leave-one-out mean of
-# the prompt's group, "GRPO" the group-standardized advantage (one update per batch).
+# the prompt's group: these three use lesson 2's REINFORCE loss, summed over a completion's
+# tokens. "GRPO" is section 1's objective, `losses.grpo_loss`: group-standardized advantages,
+# the clipped ratio (exactly 1 here: one update per batch) and the mean over each completion's
+# tokens. So the GRPO arm differs from RLOO in two ways at once, the std division and the
+# per-completion average, and the comparison measures the package, not either part alone.
 
 # %%
 method_names = {"reinforce": "REINFORCE", "batch_mean": "REINFORCE + batch mean",
@@ -320,13 +433,20 @@ for m, (r, p) in final.items():
 if not SMOKE:  # every baselined method beats plain REINFORCE on every seed
     for m in ("batch_mean", "rloo", "grpo"):
         assert final[m][0].min() > final["reinforce"][0].max(), m
+# Between the baselined methods: a difference is called only beyond two standard errors (Welch)
+from course_utils.tracks import differs
+
+for m in ("batch_mean", "rloo"):
+    for i, what in enumerate(("reward", "pass rate")):
+        print(f"GRPO vs {method_names[m]}, {what}: {differs(final['grpo'][i].tolist(), final[m][i].tolist())}")
 
 # %% [markdown]
 # What the runs show: every baselined method beats plain REINFORCE on every seed, by a wide
-# margin, as lesson 3's variance measurements predicted. Between the three baselined methods
-# (batch mean, leave-one-out, GRPO) this experiment detects **no difference**: their curves lie
-# within each other's seed-to-seed spread. On this small task with a shaped reward the baseline
-# is what matters. Where GRPO's extra step, the division by the group's std, can matter: it
+# margin, as lesson 3's variance measurements predicted (the cell asserts it). Between the
+# baselined methods, read the lines the cell prints: each compares GRPO with one of the others
+# over the seeds and calls a difference only beyond two standard errors. With five seeds only
+# large differences can be detected, so "no difference detected" bounds the effect; it does not
+# show the methods equal. Where GRPO's extra step, the division by the group's std, can matter: it
 # rescales every prompt's advantages to size about 1, so a prompt whose completions differ only
 # slightly is pushed as hard as one with large differences. That is also the rescaling Dr. GRPO
 # argues biases the objective (`advantage_scale="none"` in `course_utils` turns it off); the
@@ -357,12 +477,15 @@ if not SMOKE:  # every baselined method beats plain REINFORCE on every seed
 #
 # ## Check yourself
 #
-# 1. Why do GRPO's statistics have to be per prompt? What goes wrong with batch statistics when
-#    prompts differ in difficulty?
+# 1. What does centring on each prompt's own group mean buy over centring on the whole batch's
+#    mean? Which part of GRPO's normalization makes a prompt's weight depend on its difficulty,
+#    and which prompts does it favour (section 2's table)?
 # 2. A group of 8 completions all fail. What is its contribution to the gradient, and what are
 #    three ways to get signal from such prompts?
 # 3. For $A < 0$, which ratios get zero gradient? Why is the min pessimistic?
-# 4. Why is k1 a worse per-token penalty than k3, though both have the right mean?
+# 4. k1 and k3 both estimate KL(π_θ‖π_ref) without bias. Put into the loss, what does each
+#    one's gradient equal on average (section 4's enumeration)? Which estimator's gradient is
+#    that of KL(π_θ‖π_ref), and why does GRPO's k3 still pull the policy towards the reference?
 # 5. Under the `grpo` aggregation, why do wrong answers tend to get longer?
 # 6. When is GRPO's gradient exactly REINFORCE with a group baseline, and what changes when a
 #    batch is reused?

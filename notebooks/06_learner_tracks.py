@@ -35,18 +35,25 @@
 #
 # Every experiment is a function in `course_utils/tracks.py` (read it: each is a page). The
 # training runs are the `cpu` preset as it was before lesson 5's fixes (shaped reward, no
-# dynamic sampling), shortened to 12 steps (2 to 4 minutes each on 2 CPU cores) and are shared between tracks: plain GRPO with seed *s* is the "no entropy bonus", the
-# "no KL" and the "per-prompt groups" arm at once. In CI this notebook runs every experiment
-# shrunk to seconds on a tiny random model; below each one are the numbers and plots of the real
-# run on the embedded SmolLM2-135M-Instruct, from
+# dynamic sampling), shortened to 12 steps (2 to 4 minutes each on 2 CPU cores),
+# and are shared between tracks: plain GRPO with seed *s* is the "no entropy bonus", the "no KL"
+# and the "per-prompt groups" arm at once. By default the notebook trains nothing and shows,
+# under each experiment, the numbers and plots of the real run on the embedded
+# SmolLM2-135M-Instruct; set `RUN_EXPERIMENTS = True` in the next code cell to retrain them (with
+# progress bars). In CI it runs every experiment shrunk to seconds on a tiny random model. The
+# stored results come from
 #
 # ```bash
 # python -m course_utils.tracks all --seeds 0 1 2 --out notebooks/results/tracks   # about 1 hour on 2 CPU cores
 # ```
 #
-# **Read the results with their scale in mind.** Twelve steps of a 135M model on a CPU are a
-# small experiment: three seeds detect large effects only. Each section says what a T4 run (the
-# `t4` preset: Qwen2.5-0.5B, 640 steps) would add.
+# **Held-out prompts.** Every held-out figure below is measured on prompts built from the
+# 10 held-out snippets of the course's offline set, each paired with
+# several drawn digit-sum targets: they test the rule on new targets more than on new text.
+#
+# **Read the results with their scale in mind.** 12 steps of a 135M model on a
+# CPU are a small experiment: three seeds detect large effects only. Each section says what a T4
+# run (the `t4` preset: Qwen2.5-0.5B, 640 steps) would add.
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
@@ -72,12 +79,24 @@ from course_utils import tracks
 from course_utils.config import smoke_mode
 
 SMOKE = smoke_mode()
+# False: each section shows the stored results rendered under it and trains nothing. True:
+# retrain every track on the real model, with progress bars (about an hour on 2 CPU cores;
+# finished runs in runs/tracks/ are reused). In smoke mode (CI) every track runs, shrunk.
+RUN_EXPERIMENTS = False
 SEEDS = [0, 1] if SMOKE else [0, 1, 2]
 OUT = Path("runs/tracks-results")   # the committed results stay untouched in notebooks/results/
-print(f"smoke: {SMOKE}; seeds: {SEEDS}; results written to {OUT}")
+print(f"smoke: {SMOKE}; run experiments: {SMOKE or RUN_EXPERIMENTS}; seeds: {SEEDS}; "
+      f"results written to {OUT}")
 
 
-def show(name: str) -> None:
+def experiment(track, name: str) -> None:
+    """Run one track (smoke mode, or RUN_EXPERIMENTS) and show its curves; otherwise say where
+    the stored result is."""
+    if not (SMOKE or RUN_EXPERIMENTS):
+        print(f"Stored result shown below (notebooks/results/tracks/{name}/); set "
+              f"RUN_EXPERIMENTS = True to retrain it.")
+        return
+    track(SEEDS, OUT / name)
     image = OUT / name / "curves.png"
     if image.exists():
         display(Image(filename=str(image)))
@@ -96,8 +115,7 @@ def show(name: str) -> None:
 # first, as in lesson 5), but more slowly than when the rule is stated.
 
 # %%
-tracks.base_model(SEEDS, OUT / "base_model")
-show("base_model")
+experiment(tracks.base_model, "base_model")
 
 # %% [markdown]
 # **Real CPU result** (3 seeds):
@@ -118,11 +136,12 @@ show("base_model")
 # ![base_model: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/base_model/curves.png)
 #
 # **Verdict.** The first half holds: never told the rule, the policy still moved towards it, the
-# mean miss falling from about 104 to 32 characters (sampled; 98 to 27 greedy) in 12 steps, with
-# no prompt passing both constraints. "More slowly than when the rule is stated" is *not
-# established*: with the rule stated (the plain GRPO runs of tracks 3-5, half as many samples per
-# step) the greedy miss after 12 steps was 14.7, 10.9 and 33.7 characters over the three seeds,
-# against 26.5 ± 3.2 here, so the seed-to-seed spread covers the gap. What a T4 run would add:
+# mean miss falling from about 104 to 32 characters (sampled; 98 to 27
+# greedy) in its short run, with no prompt passing both constraints. "More slowly than when the
+# rule is stated" is *not established*: the stored results hold the greedy miss of a run with the
+# rule stated for one seed only (the plain GRPO policy that track 2 serves: 14.7
+# characters, with half as many samples per step), against 26.5 ± 3.2 here, and
+# one seed cannot carry a comparison. What a T4 run would add:
 # gpt2 itself (a true base model, with no instruction-tuned habits), the preset's 256 steps, and
 # the question the CPU cannot answer, whether the digit-sum rule is ever discovered without being
 # stated (it needs a completion that hits a digit sum of 10 by chance, in a group that also
@@ -142,7 +161,7 @@ show("base_model")
 # the KV cache matters more for latency than quantization does at these lengths.
 
 # %%
-tracks.serving(SEEDS, OUT / "serving")
+experiment(tracks.serving, "serving")
 
 # %% [markdown]
 # **Real CPU result:**
@@ -159,14 +178,15 @@ tracks.serving(SEEDS, OUT / "serving")
 # weights in memory: fp32 513 MiB, int8 236 MiB (211 linear layers quantized, the output layer among them; the embedding stays fp32)
 #
 # **Verdict.** Half right. The KV cache is the bigger lever, as expected: without it every new
-# token recomputes the whole sequence, and the median request takes 3.2x longer in fp32 (3088 ms
-# against 955 ms) and 3.1x longer in int8. Dynamic int8 is a real gain on a CPU too: 1.7x faster
-# (573 against 955 ms) and 2.2x less weight memory (236 against 513 MiB; the embedding stays
+# token recomputes the whole sequence, and the median request takes 3.2x longer in fp32
+# (3088 ms against 955 ms) and 3.1x longer in int8. Dynamic int8 is a real gain on a CPU too: 1.7x faster
+# (573 ms against 955 ms) and 2.2x less weight memory (236 MiB against 513 MiB; the embedding stays
 # fp32). But the quality cost was *not* small for this policy: the mean miss on the held-out
-# prompts doubled (14.7 to 30.4 characters) and the mean reward fell from 0.607 to 0.564. A
+# prompts went from 14.7 to 30.4 characters and the mean reward fell from 0.607 to 0.564. A
 # policy trained to hit an exact length leans on small logit differences, which rounding every
 # weight row to 256 levels disturbs; measure quality after quantizing, never assume it. (One
-# seed and 32 prompts: the direction is clear, the size is rough.) What a T4 run would add:
+# seed and one set of held-out prompts, so no interval can be given: the size is rough, and a
+# second seed is the first thing to add.) What a T4 run would add:
 # bitsandbytes' LLM.int8, which keeps outlier features in fp16 and usually loses less, vLLM's
 # batched serving for throughput, and latency under concurrent requests rather than one at a time.
 
@@ -176,15 +196,15 @@ tracks.serving(SEEDS, OUT / "serving")
 # The seed text adds an entropy bonus whose weight is the inverse of the batch's reward
 # variance: when rewards stop varying (little signal), explore more. It is a course extension,
 # not part of GRPO. Three arms: no bonus; a constant weight of 0.05; and the dynamic weight
-# $10^{-3} / \mathrm{Var}(r)$, capped at 0.2, which is about 0.05 at the start of these runs. So the
-# constant and dynamic arms differ in *how* the weight moves, not in its typical size.
+# $10^{-3} / \mathrm{Var}(r)$, capped at 0.2. The constant was sized for a reward variance near
+# 0.02, where the dynamic weight is also 0.05; when the batch's rewards vary less, the dynamic
+# weight is larger, so the two arms can differ in the weight's size as well as in how it moves.
 #
 # **Hypothesis (the seed's).** The dynamic bonus reaches a reward threshold in fewer steps, keeps
 # the entropy higher, and ends with a higher reward than no bonus or a constant one.
 
 # %%
-tracks.entropy(SEEDS, OUT / "entropy")
-show("entropy")
+experiment(tracks.entropy, "entropy")
 
 # %% [markdown]
 # **Real CPU result** (3 seeds; bands are the range over seeds):
@@ -204,17 +224,19 @@ show("entropy")
 # ![entropy: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/entropy/curves.png)
 #
 # **Verdict.** The seed's hypothesis is *not supported* here. The dynamic bonus was the slowest
-# arm to the threshold: within 12 steps it never reached a training reward of 0.6 in any seed,
-# while no bonus got there at steps 11, 6 and 10. It did keep the entropy highest (about 6.0
-# nats per token late in training against 3.8 without a bonus), and its final held-out reward
-# shows no difference from no bonus. One confound must be said plainly: the reward variance in
-# these runs was about 0.01, not the 0.02 the arms were sized for, so the dynamic weight
-# averaged about 0.08 (0.035 to 0.2), more than the constant arm's 0.05. So "dynamic" and "more"
-# are mixed here; the next experiment sets the constant to the dynamic arm's measured mean. The
-# constant bonus ended highest (0.640 against 0.581), but with three seeds that gap is 1.6
-# standard errors: no difference detected. A T4 run (640 steps, Qwen2.5-0.5B) would show whether
-# the extra entropy pays off late, when plain GRPO's entropy collapses (lesson 5's CPU run fell to
-# almost 0 by step 30 and settled on a template).
+# arm to the threshold: in its short run it never reached the training-reward threshold in any
+# seed, while no bonus got there at steps 11, 6 and 10. It did keep the entropy
+# highest (about 6.0 nats per token late in training against
+# 3.8 without a bonus), and its final held-out reward shows no difference from
+# no bonus. One confound must be said plainly: the dynamic weight's size over these runs was not
+# stored, so whether the dynamic arm differed from the constant one by *how* its weight moved or
+# by *how large* it was cannot be told from them. The arm that would separate the two, a constant
+# weight set to the dynamic arm's mean weight (logged per step as `entropy_weight`), is not in
+# the table; it is the first experiment under "Your turn" below. The constant bonus ended
+# highest (0.640 against 0.581), but with three seeds
+# that gap is 1.6 standard errors: no difference detected. A T4 run
+# (640 steps, Qwen2.5-0.5B) would show whether the extra entropy pays off late, when plain
+# GRPO's entropy collapses (lesson 5, section 6.1, shows such a collapse in its stored runs).
 
 # %% [markdown]
 # ## 4. Frontier researcher: a reward-aware KL schedule, and its falsifier
@@ -237,8 +259,7 @@ show("entropy")
 # no lower than plain GRPO's, and better than a constant KL of the same base size.
 
 # %%
-tracks.kl_schedule(SEEDS, OUT / "kl")
-show("kl")
+experiment(tracks.kl_schedule, "kl")
 
 # %% [markdown]
 # **Real CPU result** (3 seeds):
@@ -263,14 +284,15 @@ show("kl")
 # preserve; all three arms are within noise of 0, and reward-aware against constant KL shows no
 # difference. The probe is sound (it compares against the untouched pre-trained model), the run
 # is too short to damage anything. *Reward*: the mean held-out reward of the reward-aware arm is
-# not lower than plain GRPO's (0.612 against 0.581, no difference detected), but the falsifier
-# is not empty: on 32 of the 96 held-out prompt-and-seed pairs its greedy completion scores lower
-# than plain GRPO's (59 higher, 5 equal; the constant KL: 37 lower, 57 higher). So "no cost in
-# reward" holds on average and fails prompt by prompt; `result.json` lists examples. The
-# schedule itself behaved as designed: the coefficient moved between 0.021 and 0.16 around its
-# base 0.04, rising on low-variance batches. What a T4 run would add: 640 steps, long enough for
-# plain GRPO to drift (lesson 5's CPU run collapsed onto one template by step 30, with entropy
-# near 0), which is where a KL term can show what it preserves.
+# not lower than plain GRPO's (0.612 against 0.581, no difference
+# detected), but the falsifier is not empty: on 32 of 96 held-out prompt-and-seed
+# pairs its greedy completion scores lower than plain GRPO's (the constant KL:
+# 37 of 96). So "no cost in reward" holds on average and fails prompt by prompt;
+# `result.json` lists examples. How far the schedule moved the coefficient around its base was
+# not stored; the per-step `kl_coef` in a run's `metrics.jsonl` shows it for your own runs. What a
+# T4 run would add: 640 steps, long enough for plain GRPO to drift (lesson 5, section 6.1,
+# shows a CPU run collapsing onto one template), which is where a KL term can show what it
+# preserves.
 
 # %% [markdown]
 # ## 5. Open question: per-prompt groups or whole-batch normalization?
@@ -290,8 +312,7 @@ show("kl")
 # direction is slightly off the true gradient while whole-batch normalization's is not.
 
 # %%
-result = tracks.grouping(SEEDS, OUT / "grouping")
-show("grouping")
+experiment(tracks.grouping, "grouping")
 
 # %% [markdown]
 # **Real CPU result** (exact part with 20,000 batches; real runs with 3 seeds):
@@ -317,15 +338,18 @@ show("grouping")
 # ![grouping: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/grouping/curves.png)
 #
 # **Verdict.** On the exact problem the hypothesis holds, and its size is now known. Per-prompt
-# baselines are less noisy (noise-to-signal 0.81-0.83 against 0.96 for whole-batch statistics).
-# Dividing by each group's std is what bends the direction: GRPO weights the four prompts'
-# gradients 1.00, 0.82, 0.95 and 0.90 relative to the exact gradient, a direction error of 0.067,
-# ten times the Monte Carlo floor of the other three estimators (0.005-0.007), yet a cosine of
-# 0.998: a real bias, and a small one. Centring per prompt without the std (Dr. GRPO) keeps the
-# low noise *and* the exact direction (its average is exactly (G-1)/G of the gradient; the tests
-# check the 8/7 rescaling). On the real task the learning curves show **no difference
-# detected**: whole-batch normalization ended at 0.630 ± 0.075, per-prompt groups at
-# 0.581 ± 0.045 (1.0 standard error apart). What a T4 run would add: openwebtext prompts, whose
+# baselines are less noisy (noise-to-signal 0.81-0.83 against
+# 0.96 for whole-batch statistics). Dividing by each group's std is what
+# bends the direction: GRPO weights the four prompts' gradients 1.00, 0.82, 0.95 and 0.90
+# relative to the exact gradient, a direction error of 0.067,
+# 10 times the Monte Carlo floor of the other three estimators
+# (0.005-0.007), yet a cosine of 0.998: a real bias, and a
+# small one (lesson 4, section 2, computes the same reweighting exactly for one prompt). Centring
+# per prompt without the std (Dr. GRPO) keeps the low noise *and* the exact direction (its average
+# is exactly (G-1)/G of the gradient; the tests check the 8/7 rescaling). On the real task the
+# learning curves show **no difference detected**: whole-batch normalization ended at
+# 0.630 ± 0.075, per-prompt groups at 0.581 ± 0.045
+# (1.0 standard errors apart). What a T4 run would add: openwebtext prompts, whose
 # difficulty varies far more than the course's snippets, and enough steps for a bias of a few
 # percent in direction to compound.
 
@@ -334,17 +358,24 @@ show("grouping")
 #
 # | track | hypothesis | evidence (CPU, 12 steps, 3 seeds) |
 # |---|---|---|
-# | 1. base model | learns the unstated rule, more slowly | moves towards it (miss 104 → 32 characters); "more slowly" not established |
+# | 1. base model | learns the unstated rule, more slowly | moves towards it (miss 104 to 32 characters); "more slowly" not established |
 # | 2. int8 + KV cache | int8 costs little quality; the cache matters more | the cache matters more (3.2x vs 1.7x on latency); the quality cost was *not* small (miss 14.7 → 30.4 characters) |
-# | 3. entropy bonus | the variance-scaled bonus converges faster | not supported: slowest to the threshold, final reward no difference (confounded by a larger average weight) |
+# | 3. entropy bonus | the variance-scaled bonus converges faster | not supported: slowest to the threshold, final reward no difference (possibly confounded by the weight's size) |
 # | 4. reward-aware KL | keeps knowledge at no cost in reward | untestable at this length (nothing was forgotten); no cost on average, but worse on 32 of 96 prompts |
-# | 5. grouping | per-prompt: lower variance; std division biases the direction | holds exactly (0.81 vs 0.96 noise; 0.067 direction error); on the real task no difference detected |
+# | 5. grouping | per-prompt: lower variance; std division biases the direction | holds exactly (0.81-0.83 vs 0.96 noise; 0.067 direction error); on the real task no difference detected |
 #
 # The pattern is the one to expect from small experiments: exact analyses give crisp answers,
 # short runs on a small model mostly say "no difference detected". That is a result, not a
 # failure: it bounds how large an effect can be at this scale, and it tells you which runs are
 # worth a GPU.
 #
-# **Your turn.** Each experiment takes its arms as data: add an arm (DAPO's `clip_eps_high=0.28`,
-# `loss_type="dr_grpo"`, a larger `group_size`), add seeds, or lengthen the runs (`tracks.SHORT`),
-# and rerun one track. Results are reused per run directory, so only the new runs cost time.
+# **Your turn.** Each experiment takes its arms as data: add an arm, add seeds, or lengthen the
+# runs (`tracks.SHORT`), and rerun one track. Results are reused per run directory, so only the
+# new runs cost time. Three arms worth adding:
+#
+# - to track 3, a constant entropy weight equal to the dynamic arm's mean `entropy_weight`,
+#   which separates "dynamic" from "larger";
+# - DAPO's clip-higher, `clip_eps_high=0.28`, *together with* `updates_per_batch=2` or more:
+#   with one update per batch the ratio is exactly 1, the clip never binds, and the arm would be
+#   plain GRPO under another name (lesson 5's probes ran this pair on the main job);
+# - `loss_type="dr_grpo"`, or a larger `group_size`.

@@ -12,8 +12,9 @@ included. This script writes two flavours, each as a paired .py (py:percent) and
 
 Placeholders filled here, so the repository URL is written in exactly one place
 (``course_utils.GITHUB_REPO``): ``{{COLAB_BADGE}}``, ``{{SETUP}}`` (the Colab install cell's code),
-``{{SOLUTIONS_NOTE}}``, and ``{{CPU_RESULTS}}`` (the saved reports of the real CPU runs in
-``notebooks/results/``, as markdown with their curves).
+``{{SOLUTIONS_NOTE}}``, ``{{CPU_RESULTS}}`` (the saved reports of the real CPU runs in
+``notebooks/results/``, as markdown with their curves), the other stored results' tables, and
+``{{fig:NAME}}``, a single figure quoted in prose (``notebooks/figures.py``).
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import jupytext
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 from course_utils import GITHUB_REPO  # noqa: E402
+
+import figures  # noqa: E402  (notebooks/figures.py: every figure a lesson's prose quotes)
 
 SRC, SOLUTIONS, RESULTS = HERE / "src", HERE / "solutions", HERE / "results"
 BEGIN, END = "# BEGIN SOLUTION", "# END SOLUTION"
@@ -108,8 +111,6 @@ def diagnosis_markdown() -> str:
              lambda d: f"{d['zero_std_end']:.0%} / {d['zero_std_max']:.0%}"),
             ("completion tokens, first step → last 5 steps",
              lambda d: f"{d['tokens_start']:.1f} → {d['tokens_end']:.1f}"),
-            ("extra groups drawn by dynamic sampling, before / after that step",
-             lambda d: f"{d['extra_groups_before']} / {d['extra_groups_after']}"),
             ("distinct greedy completions on the held-out prompts",
              lambda d: f"{d['distinct']} of {d['held_out']}"),
             ("most frequent held-out completion (how often, characters)",
@@ -181,6 +182,7 @@ def render(source: Path, learner: bool) -> dict[str, str]:
                 f"first, the checkers tell you what is wrong.*")
     else:
         note = "*This is the solution flavour of the lesson: every exercise is filled in.*"
+    text = figures.fill(text, source.name)
     for name in re.findall(r"\{\{TRACK_RESULTS:(\w+)\}\}", text):
         text = fill_markdown(text, f"TRACK_RESULTS:{name}", track_results_markdown(name))
     if "{{CPU_RESULTS}}" in text:

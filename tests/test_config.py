@@ -34,6 +34,8 @@ def test_t4_preset_needs_a_gpu_for_fp16_and_says_so():
     (dict(entropy_bonus="constant", entropy_coef=0.0), "entropy_coef", "> 0"),
     (dict(max_steps=0), "max_steps", ">= 1"),
     (dict(advantage_scale="global"), "advantage_scale", "group, batch, none"),
+    # batch centring with the default per-group scale divides all-equal groups by 0 + eps
+    (dict(advantage_center="batch"), "advantage_scale", "'batch' or 'none' with advantage_center='batch'"),
     (dict(kl_coef=-0.1), "kl_coef", ">= 0"),
     (dict(lora_rank=-4), "lora_rank", ">= 0"),
     (dict(lora_rank=8, lora_alpha=0.0), "lora_alpha", "> 0"),

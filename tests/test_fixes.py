@@ -151,6 +151,31 @@ def test_dynamic_sampling_resumes_bitwise(resume_pair, monkeypatch):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+def _always_varied(prompts, completions, **kw):
+    """Rewards 0, 1, 2, ... inside every group: no group is ever without signal."""
+    return [float(i % 4) for i in range(len(completions))]
+
+
+def test_dynamic_sampling_that_never_triggers_leaves_the_run_bitwise_unchanged(tmp_path, monkeypatch):
+    """Until some group's rewards are all equal, a run with dynamic sampling is the run without
+    it, step for step: the ablation's reading of a seed on which it never triggered rests on this."""
+    from safetensors.torch import load_file
+
+    from course_utils import checkpoint
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", _always_varied)
+    runs = {}
+    for on in (True, False):
+        out = tmp_path / f"ds-{on}"
+        train.train(load_config("smoke", dynamic_sampling=on, out_dir=str(out)), progress=False)
+        runs[on] = (checkpoint.MetricsLog(out / "metrics.jsonl").read(),
+                    load_file(str(out / "checkpoint" / "model.safetensors")))
+    (log_on, params_on), (log_off, params_off) = runs[True], runs[False]
+    assert all(r["groups_sampled"] == 2 and r["sampling_rounds"] == 1 for r in log_on)
+    assert all(torch.equal(params_on[k], params_off[k]) for k in params_on)
+    same = lambda rs: [{k: v for k, v in r.items() if "time" not in k and k != "tokens_per_s"} for r in rs]  # noqa: E731
+    assert same(log_on) == same(log_off)
+
+
 def test_refill_batches_are_seeded_by_step_and_round():
     cfg = load_config("smoke")
     prompts = _prompts(range(3, 13))
@@ -300,6 +325,13 @@ def _steps(n=6, **values):
     return [{**base, **values} for _ in range(n)]
 
 
+def test_first_pass_step_is_the_first_step_that_sampled_a_pass():
+    from course_utils import ablation
+    steps = [dict(step=i + 1, first_round_pass_both=p) for i, p in enumerate([0, 0, 0.03, 0, 0.5])]
+    assert ablation.first_pass_step(steps) == 3
+    assert ablation.first_pass_step(steps[:2]) is None
+
+
 @pytest.mark.parametrize("values, ending", [
     (dict(distinct_frac=0.25, entropy=0.2), "collapsed onto one sentence"),     # both at the edge
     (dict(distinct_frac=0.26, entropy=0.05), "still exploring"),                # still varied
@@ -338,18 +370,36 @@ def test_probes_table_reads_every_stored_probe():
 
 
 def test_the_lessons_reading_of_the_ablation_matches_its_stored_results():
-    """Lesson 5, section 6.3 states these in words; the stored result.json must bear them out."""
+    """Lesson 5, sections 6.2 and 6.3 state these in words; the stored result.json must bear
+    them out (and the issue's bar: a 3-seed mean of at least 50% for the main job)."""
     import json
     from pathlib import Path
 
     from course_utils import ablation
-    stored = json.loads((Path(__file__).resolve().parents[1] / "notebooks" / "results" / "ablation" /
-                         "result.json").read_text())
-    arms = {name: [r["pass_both"] for r in arm["runs"]] for name, arm in stored["arms"].items()}
-    full = arms[ablation.FULL]
-    assert all(len(v) == 3 for v in arms.values()) and set(arms) == set(ablation.ARMS)
-    assert all(s >= f for s, f in zip(arms["shaped reward instead of sharp"], full))
-    assert all(d <= f for d, f in zip(arms["without dynamic sampling"], full))
+    from course_utils.config import PRESETS
+    results = Path(__file__).resolve().parents[1] / "notebooks" / "results"
+    stored = json.loads((results / "ablation" / "result.json").read_text())
+    runs = {name: arm["runs"] for name, arm in stored["arms"].items()}
+    passed = {name: [r["pass_both"] for r in rs] for name, rs in runs.items()}
+    full, ds, sharp = (passed[a] for a in ablation.ARMS)
+    assert all(len(v) == 3 for v in passed.values()) and set(passed) == set(ablation.ARMS)
+    # half of the held-out prompts on average, not on every seed; one has only begun to pass
+    assert sum(full) / 3 >= 0.5 and min(full) < 0.2
+    assert sorted(r["pass_both_one_digit"] for r in runs[ablation.FULL])[1:] == [1.0, 1.0]
+    # dynamic sampling: the same held-out pass rate on every seed; on one seed never triggered
+    assert ds == full
+    ds_runs = runs["with dynamic sampling"]
+    assert any(r["groups_sampled"] == r["steps"] * PRESETS["cpu"]["prompts_per_step"] for r in ds_runs)
+    assert any(r["groups_sampled"] > r["steps"] * PRESETS["cpu"]["prompts_per_step"] for r in ds_runs)
+    # the sharp reward on top of dynamic sampling: no better on any seed
+    assert all(s <= d for s, d in zip(sharp, ds))
     assert all(v.endswith("no difference detected") for v in stored["verdicts"])
-    assert all(r["pass_both_two_digit"] == 0 for arm in stored["arms"].values() for r in arm["runs"])
-    assert all(sum(v) / len(v) < 0.5 for v in arms.values())
+    # two-digit passes: at most one fixed sentence per run
+    assert all(len(r["two_digit_pass_completions"]) <= 1 for rs in runs.values() for r in rs)
+    # 6.2, the budget: no run sampled a pass in its first ten steps; against cpu-shaped, twice
+    # the learning rate, a tighter token cap, and half as many steps again
+    assert min(r["first_pass_step"] or 10**6 for rs in runs.values() for r in rs) > 10
+    shaped = json.loads((results / "cpu-shaped" / "config.json").read_text())
+    cpu = PRESETS["cpu"]
+    assert cpu["lr"] == 2 * shaped["lr"] and cpu["max_new_tokens"] < shaped["max_new_tokens"]
+    assert cpu["max_steps"] == 1.5 * shaped["train_prompts"] / shaped["prompts_per_step"]

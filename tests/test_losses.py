@@ -31,6 +31,12 @@ def test_batch_normalization_differs_from_group_normalization():
     assert (adv_batch[2:] > 0).all()
 
 
+def test_batch_centring_with_a_per_group_scale_is_refused():
+    # an all-equal group's batch-centred rewards over its std of 0 (+ eps) would be ~1e4
+    with pytest.raises(ValueError, match="scale='batch'"):
+        losses.group_advantages(torch.tensor([1.0, 0.0, 1.0, 1.0]), 2, center="batch", scale="group")
+
+
 def test_dr_grpo_scale_none_only_centres():
     rewards = torch.tensor([3.0, 1.0, 2.0, 2.0])
     adv, _ = losses.group_advantages(rewards, 2, scale="none")

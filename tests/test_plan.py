@@ -88,3 +88,27 @@ def test_time_plan_by_hand():
     t = plan.time_plan(a, ckpt, prompt_len=100, completion_len=10)
     assert t["training s/step"] == pytest.approx(
         (8 * body * (2 * 4 * 10 + 2 * 4 * 100) + 8 * a.n_embedding * 2 * 4 * 10) / peak)
+
+
+def test_lora_saves_time_too_it_skips_the_frozen_weights_gradient_matmuls():
+    """Lesson 5 says LoRA saves about a third of the training FLOPs, not only memory: the
+    frozen weights need no weight gradient (one of the three matmuls per weight and token),
+    while the forward and the gradient flowing down to lower adapters remain. Counted here on
+    two small Qwen2 shapes, one training step each."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from course_utils import models
+
+    def train_flops(model, vocab):
+        ids = torch.randint(0, vocab, (4, 32), generator=torch.Generator().manual_seed(0))
+        with FlopCounterMode(display=False) as counter:
+            model(input_ids=ids).logits.float().pow(2).mean().backward()
+        return counter.get_total_flops()
+
+    for vocab, hidden, intermediate in [(256, 64, 128), (1000, 128, 512)]:
+        shape = dict(hidden_size=hidden, intermediate_size=intermediate)
+        full = train_flops(models.tiny_qwen2(vocab, **shape), vocab)
+        lora = train_flops(models.add_lora(models.tiny_qwen2(vocab, **shape), rank=4, alpha=8), vocab)
+        # 4 of 6 FLOPs per frozen weight and token, plus the adapters and attention's own matmuls
+        assert 0.6 < lora / full < 0.78, (vocab, lora / full)

@@ -156,8 +156,10 @@ plt.title("terminal reward: irrelevant tokens add noise"); plt.show()
 assert variance_by_length[-1] > 0.5 * lengths[-1] * variance_by_length[0]
 
 # %% [markdown]
-# This is the problem the rest of the course attacks: baselines (lesson 3) and group-relative
-# advantages (lesson 4) shrink the noise without biasing the direction.
+# This is the problem the rest of the course attacks. Baselines (lesson 3) shrink the noise
+# without biasing the direction. Group-relative advantages (lesson 4) are a baseline too, and
+# GRPO then divides each group by its own std, which reweights prompts by their difficulty: a
+# small bias in direction, which lesson 4 computes exactly.
 #
 # ## 3. Batches of completions: masks
 #

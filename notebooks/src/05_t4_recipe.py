@@ -15,7 +15,9 @@
 #   model loads;
 # - what a T4 can and cannot do (fp16 with a gradient scaler and NaN guards; no bf16, no TF32);
 # - how to survive a Colab disconnect (checkpoints, on Google Drive if you like, and resume);
-# - how to read a run: the curves, and held-out completions before and after.
+# - how to read a run: the curves, and held-out completions before and after;
+# - why a run stops learning (reward hacking, entropy collapse, groups without signal), how to
+#   see it in the metrics, and which fixes an ablation over three seeds supports (section 6).
 #
 # Runtime: *Runtime > Change runtime type > T4 GPU*. On a CPU (and in CI) this notebook runs a
 # shrunk version of every step with a tiny model, so it can be read and tested anywhere.
@@ -45,9 +47,8 @@ if GPU and "T4" not in GPU:
 # ## 1. The configuration
 #
 # The `t4` preset is the seed recipe, corrected: GRPO groups of $G = 8$ completions per prompt
-# (the seed standardized over the whole batch instead), the sharp reward and DAPO's dynamic
-# sampling rather than the seed's binary reward (sections 5 and 6 show why), 16 prompts per
-# step, 128-token openwebtext prompts, a 64-character target, AdamW with lr 1e-5 and weight
+# (the seed standardized over the whole batch instead), a shaped partial-credit reward rather
+# than the seed's binary reward (sections 5 and 6 show why), 16 prompts per step, 128-token openwebtext prompts, a 64-character target, AdamW with lr 1e-5 and weight
 # decay 0.01, gradient clipping at 1.0, gradient accumulation, fp16 autocast with fp32 master
 # weights and gradient checkpointing. Two things of the seed's are left out: its entropy bonus
 # scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 6's
@@ -78,10 +79,11 @@ print(json.dumps(cfg.to_dict(), indent=1))
 # ## 2. The plan: will it fit, and how long will it take?
 #
 # Full fine-tuning keeps, per parameter, an fp32 weight (4 bytes), its gradient (4), AdamW's two
-# moments (8) and, under autocast, an fp16 copy (2): 18 bytes, 8.4 GiB for 494M parameters,
-# before a single activation. Then come the activations of one micro-batch (gradient
-# checkpointing keeps only each layer's input) and the logits: a vocabulary of 151,936 makes
-# every completion token's logits 0.6 MB in fp32, so they are computed only at completion
+# moments (8) and, under autocast, an fp16 copy (2): {{fig:plan.bytes_per_param}} bytes,
+# {{fig:plan.persistent_gib}} GiB for {{fig:plan.params_m}} parameters, before a single activation.
+# Then come the activations of one micro-batch (gradient checkpointing keeps only each layer's
+# input) and the logits: a vocabulary of {{fig:plan.vocab}} makes every completion token's logits
+# {{fig:plan.logits_mb_per_token}} MB in fp32, so they are computed only at completion
 # positions. `course_utils.plan` adds these up; its memory model is checked against a peak
 # measured on a CPU for a smaller batch of the same architecture (`tests/test_plan.py`, within
 # 15%). The time plan divides FLOPs by the T4's published peak and adds a fixed cost per decoding
@@ -103,19 +105,26 @@ print(f"3 hours at that rate: {3 * 3600 / per_step:.0f} steps, "
 
 # %% [markdown]
 # So the seed's budget is out of reach by an order of magnitude. The preset's default run is
-# 10,240 prompts (640 steps, one epoch): about 1.3 hours at the planned rate, leaving a factor
-# of two for the plan's assumptions inside a 3-hour session. The plan is arithmetic, not a
-# measurement: watch the seconds per step in the progress bar and adjust `train_prompts`.
-# Micro-batches of 2 prompts x 8 completions (`grad_accum=8`) keep the peak near 12 GiB; with
-# `grad_accum=4` the logits alone would need 5.3 GiB and the run would not fit.
+# {{fig:plan.t4_prompts}} prompts ({{fig:plan.t4_steps}} steps, one epoch): about
+# {{fig:plan.t4_hours}} hours at the planned rate, leaving a factor of two for the plan's
+# assumptions inside a 3-hour session. The plan is arithmetic, not a measurement: watch the
+# seconds per step in the progress bar and adjust `train_prompts`. Micro-batches of 2 prompts x 8
+# completions (`grad_accum=8`) keep the peak near {{fig:plan.t4_peak_gib}} GiB. With
+# `grad_accum=4` the logits alone would need {{fig:plan.accum4_logits_gib}} GiB and the planned
+# peak is {{fig:plan.accum4_peak_gib}} GiB against the T4's {{fig:plan.t4_usable_gib}} usable:
+# at the limit, well inside the plan's own 15% accuracy, so it may fit or not. Do not count on it.
 #
 # Two options shrink the persistent part, and the plan shows what each buys. `optimizer=
 # "adamw_8bit"` (bitsandbytes) keeps AdamW's moments in 8 bits. `lora_rank=16` trains low-rank
-# adapters on every linear layer instead of the weights (peft): 8.8M trainable parameters instead
-# of 494M, so gradients and moments almost vanish, and with a KL term the reference model is the
-# same network with its adapters switched off, not a second copy. Neither is needed to fit this
-# run, so both are off by default: LoRA changes what is learned (a rank-16 update), and the
-# saving is in memory, not time (the forward and backward still run through every frozen weight).
+# adapters on every linear layer instead of the weights (peft): {{fig:plan.lora16_params_m}}
+# trainable parameters instead of {{fig:plan.params_m}}, so gradients and moments almost vanish,
+# and with a KL term the reference model is the same network with its adapters switched off, not
+# a second copy. Neither is needed to fit this run, so both are off by default: LoRA changes what
+# is learned (a rank-16 update). It saves some time as well as memory: the forward and the
+# backward still run through every frozen weight, but a frozen weight needs no gradient of its
+# own, and that matmul is one of the three each weight costs per token in training, so about a
+# third of the training FLOPs go (`tests/test_plan.py` counts them on small Qwen2 models; the
+# time plan does not model it, and generation costs the same).
 # The LoRA memory estimate is rougher than the full fine-tuning one (within 25% of a CPU
 # measurement, `tests/test_plan.py`).
 
@@ -202,7 +211,7 @@ if not GPU:
 # loop on the embedded SmolLM2-135M-Instruct on 2 CPU cores (the `cpu` preset: 32-character
 # target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), three
 # times: the main job as it is now (`cpu`), the same job as the course first shipped it, with
-# the shaped reward and no dynamic sampling (`cpu-shaped`, 40 steps), and with the recipe's binary
+# the shaped reward and no dynamic sampling (`cpu-shaped`, {{fig:cpu_shaped.steps}} steps), and with the recipe's binary
 # reward (`cpu-binary`). The commands:
 #
 # ```bash
@@ -242,7 +251,9 @@ if not GPU:
 # the digit credits, so GRPO's standardized advantages hardly ever favour the exact length.
 # Then the template took over: every member of a group wrote it, the groups' rewards became
 # equal, and the signal was gone. This is reward hacking in miniature: the policy optimizes the
-# checker's partial credit, not your intention.
+# checker's partial credit, not your intention. The obvious conclusion, that the partial credit
+# is too lenient and must change, is the one this section tests and does not confirm: with a
+# larger budget the same shaped reward ends in passes (6.2 and 6.3).
 #
 # ### 6.1 The signs, read from the files
 #
@@ -280,43 +291,53 @@ for key, value in mine.items():
     print(f"{key:>16}: {value}")
 
 # %% [markdown]
-# ### 6.2 Two fixes, each aimed at one cause
+# ### 6.2 Levers, each aimed at one cause
 #
 # **A reward that pays a pass clearly more than any near miss** (`reward="sharp"`,
 # `course_utils/rewards.py`): two thirds of the shaped score plus one third of the binary one.
 # Until some completion passes, this is the shaped reward times 2/3, and group standardization
-# removes a common factor, so the early run is exactly the shaped run, which quickly learns
-# short answers near the target (a test checks that the advantages are equal). Once passes turn
-# up, each one earns a third of the whole score more than the best near miss: a large
-# advantage inside its group, where the shaped reward gave it almost none. Two other designs
-# failed in the course's runs, and the way they failed is the lesson: a bonus for the exact
-# *length* alone made the policy lock onto the first 32-character sentence it found, whatever
-# its digit sum (one sentence for every prompt); a bonus for the exact *digit sum* made writing
-# the digit alone the easiest thing to learn. Every partial credit is a new target to hack, and
-# what matters is the ranking it induces inside a group, not its absolute values.
+# removes a common factor, so the early run is exactly the shaped run (a test checks that the
+# advantages are equal). Once passes turn up, each one earns a third of the whole score more
+# than the best near miss: a large advantage inside its group, where the shaped reward gave it
+# almost none. It was the course's first answer to the near-miss template, and it is *not* in
+# the recipe: the ablation in 6.3 found it no better than the shaped reward, seed by seed. The
+# `cpu-shaped` run differed from the recipe in more than its reward (a lower learning rate, a
+# looser token cap, fewer steps, no dynamic sampling), and with those changed the shaped
+# reward's near misses turned into passes too. A fix aimed at a cause you guessed is the usual
+# outcome of debugging by intuition, which is why every lever here is measured. Two other
+# designs failed in the course's runs, and the way they failed is the lesson: a bonus for the
+# exact *length* alone made the policy lock onto the first 32-character sentence it found,
+# whatever its digit sum (one sentence for every prompt); a bonus for the exact *digit sum*
+# made writing the digit alone the easiest thing to learn. Every partial credit is a new
+# target to hack, and what matters is the ranking it induces inside a group, not its absolute
+# values.
 #
 # **Dynamic sampling** (`dynamic_sampling=True`, DAPO, arXiv 2503.14476): a group whose
 # rewards are all equal is dropped and fresh prompts are sampled, up to `max_sampling_rounds`
 # rounds, until the batch holds `prompts_per_step` groups with signal (a batch still short is
-# filled with groups without signal, so the batch size never changes). It costs generation,
-# counted in `groups_sampled` per step, and the table in 6.1 shows where that cost went in the
-# main job: little before the entropy fell, much after it, when a settled policy writes the
-# same completion G times and fresh prompts rarely have signal either. There it is the
-# policy's lost exploration, not the batch, that limits learning, which is why the preset
-# bounds it at two rounds. Whether it helps at all on this task is what the ablation's
-# "without dynamic sampling" arm measures.
+# filled with groups without signal, so the batch size never changes). It aims at the other
+# sign in 6.1, groups without signal, and costs generation, counted in `groups_sampled` per
+# step. It is *not* in the recipe either, and 6.3 shows why: on the shaped reward a group loses
+# its signal only when its G completions score exactly alike, which happens once the policy has
+# settled on one answer. Until then a run with dynamic sampling is the run without it, step for
+# step (`tests/test_fixes.py` checks this), and after that the extra groups it drew did not
+# change where any seed ended. Where it earns its cost is a reward that scores whole groups
+# alike from the start, as the binary reward does.
 #
-# **What the recipe leaves out, and why.** The `cpu` preset's learning rate (6e-5) and its
-# cap of 24 new tokens (room for 32 characters, about 8 tokens, and cheap first steps) are what
-# fit the run into 15 minutes, and they make it fragile: in one run with a different set of
-# training prompts the policy found the cap itself, stopped emitting the end-of-sequence token
-# and filled the 24 tokens with noise of about the right length, which the checker scores like
-# any text. DAPO's overlong filtering (`overlong_filter=True`: a completion cut off at
-# `max_new_tokens` gets no loss) removes that incentive, but the one run with it drifted into
-# noise anyway. Both runs' metrics are in `notebooks/results/failed-runs/`. The other levers
-# the literature offers (a lower temperature, a higher learning rate, a KL term to the
-# pre-trained model, clip-higher with several updates per batch) were each probed on a seed the
-# recipe misses; section 6.3 shows how each run ended.
+# **The budget.** What the recipe does carry is a budget with room to learn: against the
+# `cpu-shaped` run, twice the learning rate (6e-5), a tighter cap of 24 new tokens (room for 32
+# characters, about 8 tokens, and cheap first steps), and half as many steps again. The
+# ablation's "first sampled pass" column shows why the steps matter: no run sampled a single
+# passing completion in its first ten steps, and GRPO can only reinforce what it has sampled.
+# The same settings make the run fragile: in one run with a
+# different set of training prompts the policy found the cap itself, stopped emitting the
+# end-of-sequence token and filled the 24 tokens with noise of about the right length, which the
+# checker scores like any text. DAPO's overlong filtering (`overlong_filter=True`: a completion
+# cut off at `max_new_tokens` gets no loss) removes that incentive, but the one run with it
+# drifted into noise anyway. Both runs' metrics are in `notebooks/results/failed-runs/`. The
+# other levers the literature offers (a lower temperature, a higher learning rate, a KL term to
+# the pre-trained model, clip-higher with several updates per batch) were each probed on one
+# seed; section 6.3 shows how each run ended.
 #
 # **Under dynamic sampling, read the right pass rate.** The batch trained on is *selected*:
 # once the policy passes on some prompts, the groups kept are the ones where it sometimes
@@ -325,38 +346,41 @@ for key, value in mine.items():
 #
 # ### 6.3 The ablation
 #
-# Each arm is the main job with one lever taken out, with the same steps and the same held-out
-# prompts, over seeds 0, 1 and 2 (the table lists the seeds each arm has been run with; an arm
-# with one seed says what can happen, not how often). Reproduce with `python -m course_utils.ablation --seeds 0 1 2
-# --out notebooks/results/ablation` (each run about as long as the main job; finished runs are
-# reused, so an interrupted command resumes).
+# Each arm is the main job with the levers its name adds, with the same steps and the same
+# held-out prompts, over seeds 0, 1 and 2 (the table lists the seeds each arm has been run with;
+# an arm with one seed says what can happen, not how often). The arm with both levers is the
+# course's previous recipe, run for the same number of steps. Reproduce with
+# `python -m course_utils.ablation --seeds 0 1 2 --out notebooks/results/ablation` (each run
+# about as long as the main job; finished runs are reused, so an interrupted command resumes).
 #
 # {{ABLATION_RESULTS}}
 #
-# Read the per-seed column before the means. Seeds of one arm end in opposite places, a
+# Read the per-seed column before the means. Seeds of one arm end in very different places, a
 # template that passes every one-digit target or almost nothing, and three seeds cannot
 # separate arms whose results swing that much: the lines under the table apply lesson 6's rule
-# (a difference is called only beyond two standard errors), and neither arm is called
-# different from the full recipe. What the table does say:
+# (a difference is called only beyond two standard errors). What the table does say:
 #
-# - **The sharp reward is not shown to help.** The arm with the shaped reward did at least as
-#   well as the full recipe on every seed. The one run where a near-miss template took over
-#   (`cpu-shaped`, section 6.1) differed from this recipe in more than its reward: a lower
-#   learning rate, a looser token cap and no dynamic sampling. The sharp reward stays in the
-#   preset until more seeds decide it, and this table is the reason to doubt it.
-# - **Dynamic sampling has the better evidence, not proof.** Without it, no seed did better
-#   than with it, and the arm passed almost nothing; at three seeds that is still "no
-#   difference detected". It costs generation only after the policy settles (section 6.1).
-# - **No arm passes a single two-digit target, on any seed.** Writing a number whose digits
-#   add up to the target is a skill none of these runs found; every pass is a one-digit target
-#   copied into a sentence of the right length.
-# - **No arm reaches half of the held-out prompts on average.** At this budget the recipe
-#   works on some seeds and not on others; `tests/test_fixes.py` checks each of these
-#   sentences against the stored `result.json`, so they cannot silently go stale.
+# - **The recipe passes half of the held-out prompts on average, not on every seed.** Two
+#   seeds settle on a template that passes every one-digit target; the third has only begun to
+#   pass when its budget ends. That spread is the honest size of what 15 minutes on a CPU buy.
+# - **Dynamic sampling changed no seed's result.** With it, every seed ended at exactly the
+#   held-out pass rate it reached without it. Until some group scores its G completions alike,
+#   the two runs are the same run (on one seed that never happened, and the runs are identical
+#   to the last step); after that, the extra groups it drew (the groups-sampled column) did not
+#   move the outcome. So the recipe leaves it out.
+# - **Neither did the sharp reward.** Added on top of dynamic sampling, it did no better than
+#   dynamic sampling alone on any seed.
+# - **A two-digit target is met only by accident.** Writing a number whose digits add up to the
+#   target is a skill none of these runs found: every pass of a two-digit target, where there
+#   is any, is one fixed sentence whose digits happen to add up to one of the targets.
 #
-# **Other levers, one seed each.** The seeds the recipe misses were used to probe the levers
-# left out of it: each row is the `cpu` preset with the change listed, on one seed, most of
-# them stopped by hand once their ending was clear (`notebooks/results/probes/`; the probes ran
+# `tests/test_fixes.py` checks each of these sentences against the stored `result.json`, so
+# they cannot silently go stale.
+#
+# **Other levers, one seed each.** Before the ablation settled the recipe, the seeds that the
+# course's earlier, shorter recipe (the sharp reward) missed were used to probe the levers left
+# out of it: each row is the `cpu` preset with the changes listed (the sharp reward among them),
+# on one seed, most of them stopped by hand once their ending was clear (`notebooks/results/probes/`; the probes ran
 # two at a time on one thread each, so their results can differ in the last digits from a run
 # on two threads, and their seconds are not comparable). "How it ended" is read from the last
 # 5 steps by a fixed rule (`course_utils.ablation.probe_outcome`): *collapsed onto one
@@ -381,13 +405,16 @@ for key, value in mine.items():
 # ### 6.4 What the fixed run learned, read honestly
 #
 # Look at the main job's completions in section 5 and at the distinct-completion count in 6.1.
-# The stored run's policy also writes a template: one sentence with a slot for the target
-# digit, exactly 32 characters long when the target has one digit. Hence the split in its
-# table: the one-digit targets pass, the two-digit ones do not (it writes one fixed two-digit
-# number there, a character too long), and it no longer continues the snippet at all. The rule checker cannot see that; it was never asked to.
-# GRPO optimized exactly the reward it was given, and this is what the reward asks for. Nor is
-# the stored run the rule: the ablation's full-recipe row gives all three seeds, and a seed
-# whose policy has not met a single pass by the end of its 48 steps never gets the bonus at all. To get
+# The stored run's policy writes a template: one sentence with a slot for the target digit,
+# exactly the target length when the target has one digit. Hence the split in its table: the
+# one-digit targets pass and the two-digit ones do not (for those it writes the same sentence
+# with a single digit in the slot), and it no longer continues the snippet at all. The rule
+# checker cannot see that; it was never asked to. Where a run of the ablation passes a
+# two-digit target at all, it is by the same kind of accident: one fixed sentence whose digits
+# happen to add up to one of the possible targets, written for every two-digit prompt (the
+# ablation's table says how often). GRPO optimized exactly the reward it was given, and this is
+# what the reward asks for. Nor is the stored run the rule: the ablation's full-recipe row gives
+# all three seeds, and one of them has barely begun to pass when its budget ends. To get
 # continuations that also obey the rule, the reward has to say so: a KL term to the pre-trained
 # model (`kl_coef`), a second reward for staying on topic, or a rule that cannot be met by a
 # fixed sentence. That is the honest summary of reward design: the checker is the

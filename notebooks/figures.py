@@ -1,0 +1,186 @@
+"""Every figure a lesson's prose quotes, computed from a stored result file.
+
+A lesson writes ``{{fig:NAME}}`` where a number belongs; ``build.py`` fills it in from
+``figures()``. The T4 plan's figures come from ``course_utils.plan`` (arithmetic, the same
+functions the lesson's cells print from), the rest from ``notebooks/results/``. No figure is
+typed into prose: ``tests/test_figures.py`` fails on one that is, so a re-run that changes a
+result changes the sentence that quotes it.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import statistics
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _json(relative: str) -> dict:
+    return json.loads((RESULTS / relative).read_text())
+
+
+def _table_cell(relative: str, row: str, column: int) -> str:
+    """A cell of a markdown table in a stored report: the row whose first cell is ``row``."""
+    for line in (RESULTS / relative).read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if cells and cells[0] == row:
+            return cells[column]
+    raise KeyError(f"{relative} has no table row {row!r}")
+
+
+def _mean_std(values: list[float], fmt: str) -> str:
+    return f"{statistics.mean(values):{fmt}} ± {statistics.stdev(values):{fmt.lstrip('+')}}"
+
+
+def _seeds(values: list, fmt: str = "") -> str:
+    """'11, 6 and 10' (None for 'never')."""
+    words = ["never" if v is None else f"{v:{fmt}}" for v in values]
+    return ", ".join(words[:-1]) + " and " + words[-1] if len(words) > 1 else words[0]
+
+
+def _z(a: list[float], b: list[float]) -> str:
+    """The difference of two arms' means in standard errors (Welch), as tracks.differs."""
+    se = (statistics.variance(a) / len(a) + statistics.variance(b) / len(b)) ** 0.5
+    return f"{(statistics.mean(a) - statistics.mean(b)) / se:.1f}"
+
+
+def plan_figures() -> dict[str, str]:
+    """Lesson 5, section 2: the T4 preset's memory and time plan."""
+    from course_utils import plan
+    from course_utils.config import PRESETS, Config
+
+    arch, t4 = plan.QWEN25_05B, Config.from_dict(PRESETS["t4"])
+    prompt_len = 128 + 45          # as in the lesson's cell: snippet + template and instruction
+    persistent = 4 + 4 + 8 + 2     # fp32 weight, gradient, AdamW's two moments, fp16 copy
+    accum4 = Config.from_dict({**PRESETS["t4"], "grad_accum": 4})
+    mem4 = plan.memory_plan(arch, accum4, prompt_len, t4.max_new_tokens)
+    mem = plan.memory_plan(arch, t4, prompt_len, t4.max_new_tokens)
+    timing = plan.time_plan(arch, t4, prompt_len, t4.max_new_tokens)
+    return {
+        "plan.bytes_per_param": f"{persistent}",
+        "plan.params_m": f"{arch.n_params / 1e6:.0f}M",
+        "plan.persistent_gib": f"{persistent * arch.n_params / plan.GiB:.1f}",
+        "plan.vocab": f"{arch.vocab:,}",
+        "plan.logits_mb_per_token": f"{arch.vocab * 4 / 1e6:.1f}",
+        "plan.t4_prompts": f"{t4.train_prompts:,}",
+        "plan.t4_steps": f"{t4.total_steps}",
+        "plan.t4_hours": f"{timing['run hours']:.1f}",
+        "plan.t4_peak_gib": f"{plan.peak_bytes(mem) / plan.GiB:.0f}",
+        "plan.accum4_logits_gib": f"{mem4['logits (completion positions)'] / plan.GiB:.1f}",
+        "plan.accum4_peak_gib": f"{plan.peak_bytes(mem4) / plan.GiB:.2f}",
+        "plan.t4_usable_gib": f"{plan.T4.memory_gib:.1f}",
+        "plan.lora16_params_m": f"{arch.lora_params(16) / 1e6:.1f}M",
+    }
+
+
+def track_figures() -> dict[str, str]:
+    """Lesson 6: the learner tracks' stored results (``python -m course_utils.tracks all``)."""
+    from course_utils.config import PRESETS, Config
+
+    base = "tracks/base_model/report.md"
+    serving, entropy = _json("tracks/serving/result.json"), _json("tracks/entropy/result.json")
+    kl, grouping = _json("tracks/kl/result.json"), _json("tracks/grouping/result.json")
+    fp32, int8 = serving["fp32"], serving["int8 (dynamic)"]
+    rewards, late = entropy["final_reward"], entropy["late_entropy"]
+    kl_reward, kl_delta = kl["final_reward"], kl["delta_loglik"]
+    est = grouping["exact"]["estimators"]
+    grpo, dr = est["per-prompt mean and std (GRPO)"], est["per-prompt mean only (Dr. GRPO)"]
+    others = [dr, est["whole-batch mean and std (the seed)"], est["whole-batch mean only"]]
+    batch = others[1]
+    g_final = grouping["final_reward"]
+
+    def p50(arm: dict, cache: bool) -> float:
+        return arm[f"cache={cache}"]["p50_s"] * 1000
+
+    def miss(row: str, column: int, fmt: str) -> str:
+        """'104.406 ± 2.993' in the base-model report, reformatted ('104' or '26.5 ± 3.2')."""
+        parts = _table_cell(base, f"mean abs(chars - 32) ({row})", column).split(" ± ")
+        return " ± ".join(f"{float(p):{fmt}}" for p in parts)
+
+    from course_utils.config import load_config
+    from course_utils.tracks import SHORT
+
+    return {
+        "tracks.steps": f"{load_config('cpu', **SHORT).total_steps}",
+        "t4.steps": f"{Config.from_dict(PRESETS['t4']).total_steps}",
+        "gpt2.steps": f"{Config.from_dict(PRESETS['gpt2-rtx4070']).total_steps}",
+        # 1. base model
+        "base.miss_sampled": f"{miss('sampled', 1, '.0f').split()[0]} to {miss('sampled', 2, '.0f').split()[0]}",
+        "base.miss_greedy": f"{miss('greedy', 1, '.0f').split()[0]} to {miss('greedy', 2, '.0f').split()[0]}",
+        "base.miss_greedy_after": miss("greedy", 2, ".1f"),
+        "serving.miss_fp32": f"{fp32['chars_error']:.1f}",
+        # 2. serving
+        "serving.cache_fp32": f"{p50(fp32, False) / p50(fp32, True):.1f}x",
+        "serving.cache_int8": f"{p50(int8, False) / p50(int8, True):.1f}x",
+        "serving.p50_fp32": f"{p50(fp32, True):.0f} ms",
+        "serving.p50_fp32_nocache": f"{p50(fp32, False):.0f} ms",
+        "serving.p50_int8": f"{p50(int8, True):.0f} ms",
+        "serving.int8_speedup": f"{p50(fp32, True) / p50(int8, True):.1f}x",
+        "serving.mib_fp32": f"{serving['state_dict_mib']['fp32']:.0f} MiB",
+        "serving.mib_int8": f"{serving['state_dict_mib']['int8']:.0f} MiB",
+        "serving.memory_ratio": f"{serving['state_dict_mib']['fp32'] / serving['state_dict_mib']['int8']:.1f}x",
+        "serving.miss_int8": f"{int8['chars_error']:.1f}",
+        "serving.reward_fp32": f"{fp32['reward']:.3f}",
+        "serving.reward_int8": f"{int8['reward']:.3f}",
+        # 3. entropy bonus
+        "entropy.steps_none": _seeds(entropy["steps_to_threshold"]["none"]),
+        "entropy.late_dynamic": f"{statistics.mean(late['inverse variance (1e-3 / Var)']):.1f}",
+        "entropy.late_none": f"{statistics.mean(late['none']):.1f}",
+        "entropy.final_constant": f"{statistics.mean(rewards['constant 0.05']):.3f}",
+        "entropy.final_none": f"{statistics.mean(rewards['none']):.3f}",
+        "entropy.z_constant_none": _z(rewards["constant 0.05"], rewards["none"]),
+        # 4. KL schedule
+        "kl.delta_plain": _mean_std(kl_delta["plain GRPO (no KL)"], "+.3f"),
+        "kl.final_aware": f"{statistics.mean(kl_reward['reward-aware KL 0.04']):.3f}",
+        "kl.final_plain": f"{statistics.mean(kl_reward['plain GRPO (no KL)']):.3f}",
+        "kl.worse_aware": f"{kl['falsifier']['reward-aware KL 0.04']['worse']} of "
+                          f"{kl['falsifier']['reward-aware KL 0.04']['of']}",
+        "kl.worse_constant": f"{kl['falsifier']['constant KL 0.04']['worse']} of "
+                             f"{kl['falsifier']['constant KL 0.04']['of']}",
+        # 5. grouping
+        "grouping.batches": f"{grouping['exact']['batches']:,}",
+        "grouping.noise_per_prompt": f"{min(grpo['noise_to_signal'], dr['noise_to_signal']):.2f}-"
+                                     f"{max(grpo['noise_to_signal'], dr['noise_to_signal']):.2f}",
+        "grouping.noise_batch": f"{batch['noise_to_signal']:.2f}",
+        "grouping.weights_grpo": _seeds(grpo["weight_per_prompt"], ".2f"),
+        "grouping.error_grpo": f"{grpo['direction_error']:.3f}",
+        "grouping.error_others": f"{min(e['direction_error'] for e in others):.3f}-"
+                                 f"{max(e['direction_error'] for e in others):.3f}",
+        "grouping.error_ratio": f"{grpo['direction_error'] / max(e['direction_error'] for e in others):.0f}",
+        "grouping.cosine_grpo": f"{grpo['cosine']:.3f}",
+        "grouping.final_batch": _mean_std(g_final["whole batch (the seed)"], ".3f"),
+        "grouping.final_group": _mean_std(g_final["per-prompt groups (GRPO)"], ".3f"),
+        "grouping.z": _z(g_final["whole batch (the seed)"], g_final["per-prompt groups (GRPO)"]),
+    }
+
+
+def cpu_run_figures() -> dict[str, str]:
+    """Lesson 5, sections 5 and 6: the stored CPU runs' settings."""
+    from course_utils.config import Config
+
+    shaped = _json("cpu-shaped/config.json")
+    known = {k: v for k, v in shaped.items() if k in Config.field_names()}
+    return {"cpu_shaped.steps": f"{Config.from_dict(known).total_steps}"}
+
+
+def data_figures() -> dict[str, str]:
+    """The offline prompt set: how many snippets the held-out prompts are built from."""
+    from course_utils import data
+
+    held_out = [s for s in data.offline_snippets() if data.is_held_out(s)]
+    return {"data.held_out_snippets": f"{len(held_out)}"}
+
+
+def figures() -> dict[str, str]:
+    return {**plan_figures(), **track_figures(), **cpu_run_figures(), **data_figures()}
+
+
+def fill(text: str, source: str) -> str:
+    """Replace every ``{{fig:NAME}}`` in a lesson's text; an unknown name is an error."""
+    known = figures()
+    unknown = sorted(set(re.findall(r"\{\{fig:([\w.]+)\}\}", text)) - set(known))
+    if unknown:
+        raise ValueError(f"{source}: unknown figure(s) {unknown}; add them to notebooks/figures.py")
+    return re.sub(r"\{\{fig:([\w.]+)\}\}", lambda m: known[m.group(1)], text)
