@@ -394,8 +394,10 @@ def test_the_lessons_reading_of_the_ablation_matches_its_stored_results():
     # the sharp reward on top of dynamic sampling: no better on any seed
     assert all(s <= d for s, d in zip(sharp, ds))
     assert all(v.endswith("no difference detected") for v in stored["verdicts"])
-    # two-digit passes: at most one fixed sentence per run
-    assert all(len(r["two_digit_pass_completions"]) <= 1 for rs in runs.values() for r in rs)
+    # two-digit passes: within a run, all write the same fixed number
+    digits = lambda text: "".join(c for c in text if c.isdigit())  # noqa: E731
+    assert all(len({digits(c) for c in r["two_digit_pass_completions"]}) <= 1
+               for rs in runs.values() for r in rs)
     # 6.2, the budget: no run sampled a pass in its first ten steps; against cpu-shaped, twice
     # the learning rate, a tighter token cap, and half as many steps again
     assert min(r["first_pass_step"] or 10**6 for rs in runs.values() for r in rs) > 10

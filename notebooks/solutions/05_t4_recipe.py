@@ -95,7 +95,7 @@ if IN_COLAB and USE_DRIVE:
 
 if GPU:
     cfg = load_config("t4", out_dir=RUN_DIR)
-else:  # the T4 code paths (checkpointing, accumulation, dynamic sampling) on a tiny model, fp32
+else:  # the T4 code paths (checkpointing, accumulation) on a tiny model, fp32
     cfg = load_config("t4", model="tiny-qwen2", prompt_source="offline", precision="fp32",
                       prompt_tokens=16, target_chars=48, prompts_per_step=2, group_size=4,
                       grad_accum=2, max_new_tokens=12, lr=1e-3, train_prompts=6, eval_prompts=4,
@@ -238,12 +238,13 @@ if not GPU:
 # loop on the embedded SmolLM2-135M-Instruct on 2 CPU cores (the `cpu` preset: 32-character
 # target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), three
 # times: the main job as it is now (`cpu`), the same job as the course first shipped it, with
-# the shaped reward and no dynamic sampling (`cpu-shaped`, 40 steps), and with the recipe's binary
-# reward (`cpu-binary`). The commands:
+# the same shaped reward and a smaller budget (`cpu-shaped`: half the learning rate, a looser
+# token cap, 40 steps), and that first job with the recipe's binary reward
+# (`cpu-binary`). The commands:
 #
 # ```bash
 # python -m course_utils.train --preset cpu --out_dir runs/cpu                       # the main job
-# # the preset as first shipped: shaped or binary reward, no dynamic sampling
+# # the preset as first shipped (half the learning rate, a looser cap, fewer steps)
 # python -m course_utils.train --preset cpu --reward shaped --dynamic_sampling false \
 #     --lr 3e-5 --max_new_tokens 32 --train_prompts 160 --out_dir runs/cpu-shaped
 # python -m course_utils.train --preset cpu --reward binary --dynamic_sampling false \
@@ -260,29 +261,29 @@ if not GPU:
 #
 # **Run `cpu`** (files in `notebooks/results/cpu/`)
 #
-# #### Held-out evaluation: 64 prompts (10 distinct held-out snippets, each with its own drawn digit-sum targets), 48 GRPO steps, model smollm2-135m-instruct, reward 'sharp'
+# #### Held-out evaluation: 64 prompts (10 distinct held-out snippets, each with its own drawn digit-sum targets), 60 GRPO steps, model smollm2-135m-instruct, reward 'shaped'
 #
 # | metric | before (sampled) | after (sampled) | before (greedy) | after (greedy) |
 # |---|---|---|---|---|
-# | mean reward | 0.284 | 0.874 | 0.257 | 0.874 |
-# | length pass rate | 0.0% | 65.6% | 0.0% | 65.6% |
-# | digit-sum pass rate | 1.6% | 76.6% | 0.0% | 76.6% |
-# | both (recipe pass rate) | 0.0% | 65.6% | 0.0% | 65.6% |
-# | both, one-digit targets (42 prompts) | 0.0% | 100.0% | 0.0% | 100.0% |
+# | mean reward | 0.427 | 0.964 | 0.386 | 0.964 |
+# | length pass rate | 0.0% | 98.4% | 0.0% | 100.0% |
+# | digit-sum pass rate | 1.6% | 65.6% | 0.0% | 65.6% |
+# | both (recipe pass rate) | 0.0% | 64.1% | 0.0% | 65.6% |
+# | both, one-digit targets (42 prompts) | 0.0% | 97.6% | 0.0% | 100.0% |
 # | both, two-digit targets (22 prompts) | 0.0% | 0.0% | 0.0% | 0.0% |
-# | distinct completions | 64 | 8 | 11 | 8 |
-# | mean abs(chars - target) | 68.4 | 0.3 | 86.2 | 0.3 |
+# | distinct completions | 64 | 8 | 11 | 7 |
+# | mean abs(chars - target) | 68.4 | 0.0 | 86.2 | 0.0 |
 #
 # ##### Sample completions (greedy), targets: characters / digit sum
 #
 # | target | before | chars / sum | after | chars / sum |
 # |---|---|---|---|---|
-# | 32 / 8 | The team shipped version 3.2 of the app this morning. The biggest change is offl | 105 / 5 | The number added to the end is 8 | 32 / 8 |
-# | 32 / 3 | The old mill by the river closed in 1987, and for years the building sat empty.  | 91 / 25 | The number added to the end is 3 | 32 / 3 |
-# | 32 / 7 | The small radio station kept broadcasting on a backup generator. Volunteers read | 146 / 0 | The number added to the end is 7 | 32 / 7 |
-# | 32 / 10 | Learning a second language as an adult is slow at first, but steady practice pay | 119 / 0 | The number added to the end is 19 | 33 / 10 |
-# | 32 / 12 | The library started lending more than books: patrons can now borrow tools, board | 122 / 0 | The number added to the end is 19 | 33 / 10 |
-# | 32 / 6 | A function called compute_total tells the next reader what it does. A function c | 100 / 0 | The number added to the end is 6 | 32 / 6 |
+# | 32 / 8 | The team shipped version 3.2 of the app this morning. The biggest change is offl | 105 / 5 | You will need to use the digit 8 | 32 / 8 |
+# | 32 / 3 | The old mill by the river closed in 1987, and for years the building sat empty.  | 91 / 25 | You will need to use the digit 3 | 32 / 3 |
+# | 32 / 7 | The small radio station kept broadcasting on a backup generator. Volunteers read | 146 / 0 | You will need to use the digit 7 | 32 / 7 |
+# | 32 / 10 | Learning a second language as an adult is slow at first, but steady practice pay | 119 / 0 | You will need to use the digit 8 | 32 / 8 |
+# | 32 / 12 | The library started lending more than books: patrons can now borrow tools, board | 122 / 0 | You will need to use the digit 8 | 32 / 8 |
+# | 32 / 6 | A function called compute_total tells the next reader what it does. A function c | 100 / 0 | You will need to use the digit 6 | 32 / 6 |
 #
 # ![training curves of cpu](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/cpu/curves.png)
 #
@@ -365,14 +366,14 @@ if not GPU:
 #
 # | sign | reward hacking (`cpu-shaped`) | the fixed recipe (`cpu`) |
 # |---|---|---|
-# | GRPO steps | 40 | 48 |
-# | entropy, first step → mean of the last 5 (nats per token) | 3.16 → 0.08 | 3.14 → 0.01 |
-# | first step with entropy below 0.5 (3-step mean) | 31 | 29 |
-# | groups without signal (all rewards equal), last 5 steps / most in any step | 55% / 75% | 95% / 100% |
-# | completion tokens, first step → last 5 steps | 28.7 → 7.1 | 22.3 → 10.5 |
-# | distinct greedy completions on the held-out prompts | 7 of 64 | 8 of 64 |
-# | most frequent held-out completion (how often, characters) | "9 characters with only spaces." (26x, 30 chars) | "The number added to the end is 19" (22x, 33 chars) |
-# | held-out pass rate: length / digit sum / both | 0.0% / 65.6% / 0.0% | 65.6% / 76.6% / 65.6% |
+# | GRPO steps | 40 | 60 |
+# | entropy, first step → mean of the last 5 (nats per token) | 3.16 → 0.08 | 3.14 → 0.00 |
+# | first step with entropy below 0.5 (3-step mean) | 31 | 41 |
+# | groups without signal (all rewards equal), last 5 steps / most in any step | 55% / 75% | 90% / 100% |
+# | completion tokens, first step → last 5 steps | 28.7 → 7.1 | 22.3 → 10.0 |
+# | distinct greedy completions on the held-out prompts | 7 of 64 | 7 of 64 |
+# | most frequent held-out completion (how often, characters) | "9 characters with only spaces." (26x, 30 chars) | "You will need to use the digit 8" (33x, 32 chars) |
+# | held-out pass rate: length / digit sum / both | 0.0% / 65.6% / 0.0% | 100.0% / 65.6% / 65.6% |
 #
 # Read the two columns together: *both* runs show the signs of a policy that stopped exploring
 # (entropy near zero, most groups without signal, few distinct completions). The difference is
@@ -412,10 +413,10 @@ for key, value in mine.items():
 # advantages are equal). Once passes turn up, each one earns a third of the whole score more
 # than the best near miss: a large advantage inside its group, where the shaped reward gave it
 # almost none. It was the course's first answer to the near-miss template, and it is *not* in
-# the recipe: the ablation in 6.3 found it no better than the shaped reward, seed by seed. The
-# `cpu-shaped` run differed from the recipe in more than its reward (a lower learning rate, a
-# looser token cap, fewer steps, no dynamic sampling), and with those changed the shaped
-# reward's near misses turned into passes too. A fix aimed at a cause you guessed is the usual
+# the recipe: the ablation in 6.3 found it no better than the shaped reward on any seed. The
+# `cpu-shaped` run it was designed against used the same shaped reward as today's recipe; what
+# differs is its budget (half the learning rate, a looser token cap, fewer steps), and with the
+# budget changed the shaped reward's near misses turned into passes. A fix aimed at a cause you guessed is the usual
 # outcome of debugging by intuition, which is why every lever here is measured. Two other
 # designs failed in the course's runs, and the way they failed is the lesson: a bonus for the
 # exact *length* alone made the policy lock onto the first 32-character sentence it found,
@@ -495,7 +496,8 @@ for key, value in mine.items():
 #   dynamic sampling alone on any seed.
 # - **A two-digit target is met only by accident.** Writing a number whose digits add up to the
 #   target is a skill none of these runs found: every pass of a two-digit target, where there
-#   is any, is one fixed sentence whose digits happen to add up to one of the targets.
+#   is any, writes the same fixed number, whose digits happen to add up to one of the targets,
+#   in variants of one sentence.
 #
 # `tests/test_fixes.py` checks each of these sentences against the stored `result.json`, so
 # they cannot silently go stale.
@@ -541,9 +543,9 @@ for key, value in mine.items():
 # one-digit targets pass and the two-digit ones do not (for those it writes the same sentence
 # with a single digit in the slot), and it no longer continues the snippet at all. The rule
 # checker cannot see that; it was never asked to. Where a run of the ablation passes a
-# two-digit target at all, it is by the same kind of accident: one fixed sentence whose digits
-# happen to add up to one of the possible targets, written for every two-digit prompt (the
-# ablation's table says how often). GRPO optimized exactly the reward it was given, and this is
+# two-digit target at all, it is by the same kind of accident: one sentence with a fixed number
+# whose digits happen to add up to one of the possible targets, written for every two-digit
+# prompt (the ablation's table says how often). GRPO optimized exactly the reward it was given, and this is
 # what the reward asks for. Nor is the stored run the rule: the ablation's full-recipe row gives
 # all three seeds, and one of them has barely begun to pass when its budget ends. To get
 # continuations that also obey the rule, the reward has to say so: a KL term to the pre-trained

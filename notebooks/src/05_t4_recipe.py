@@ -68,7 +68,7 @@ if IN_COLAB and USE_DRIVE:
 
 if GPU:
     cfg = load_config("t4", out_dir=RUN_DIR)
-else:  # the T4 code paths (checkpointing, accumulation, dynamic sampling) on a tiny model, fp32
+else:  # the T4 code paths (checkpointing, accumulation) on a tiny model, fp32
     cfg = load_config("t4", model="tiny-qwen2", prompt_source="offline", precision="fp32",
                       prompt_tokens=16, target_chars=48, prompts_per_step=2, group_size=4,
                       grad_accum=2, max_new_tokens=12, lr=1e-3, train_prompts=6, eval_prompts=4,
@@ -211,12 +211,13 @@ if not GPU:
 # loop on the embedded SmolLM2-135M-Instruct on 2 CPU cores (the `cpu` preset: 32-character
 # target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), three
 # times: the main job as it is now (`cpu`), the same job as the course first shipped it, with
-# the shaped reward and no dynamic sampling (`cpu-shaped`, {{fig:cpu_shaped.steps}} steps), and with the recipe's binary
-# reward (`cpu-binary`). The commands:
+# the same shaped reward and a smaller budget (`cpu-shaped`: half the learning rate, a looser
+# token cap, {{fig:cpu_shaped.steps}} steps), and that first job with the recipe's binary reward
+# (`cpu-binary`). The commands:
 #
 # ```bash
 # python -m course_utils.train --preset cpu --out_dir runs/cpu                       # the main job
-# # the preset as first shipped: shaped or binary reward, no dynamic sampling
+# # the preset as first shipped (half the learning rate, a looser cap, fewer steps)
 # python -m course_utils.train --preset cpu --reward shaped --dynamic_sampling false \
 #     --lr 3e-5 --max_new_tokens 32 --train_prompts 160 --out_dir runs/cpu-shaped
 # python -m course_utils.train --preset cpu --reward binary --dynamic_sampling false \
@@ -300,10 +301,10 @@ for key, value in mine.items():
 # advantages are equal). Once passes turn up, each one earns a third of the whole score more
 # than the best near miss: a large advantage inside its group, where the shaped reward gave it
 # almost none. It was the course's first answer to the near-miss template, and it is *not* in
-# the recipe: the ablation in 6.3 found it no better than the shaped reward, seed by seed. The
-# `cpu-shaped` run differed from the recipe in more than its reward (a lower learning rate, a
-# looser token cap, fewer steps, no dynamic sampling), and with those changed the shaped
-# reward's near misses turned into passes too. A fix aimed at a cause you guessed is the usual
+# the recipe: the ablation in 6.3 found it no better than the shaped reward on any seed. The
+# `cpu-shaped` run it was designed against used the same shaped reward as today's recipe; what
+# differs is its budget (half the learning rate, a looser token cap, fewer steps), and with the
+# budget changed the shaped reward's near misses turned into passes. A fix aimed at a cause you guessed is the usual
 # outcome of debugging by intuition, which is why every lever here is measured. Two other
 # designs failed in the course's runs, and the way they failed is the lesson: a bonus for the
 # exact *length* alone made the policy lock onto the first 32-character sentence it found,
@@ -372,7 +373,8 @@ for key, value in mine.items():
 #   dynamic sampling alone on any seed.
 # - **A two-digit target is met only by accident.** Writing a number whose digits add up to the
 #   target is a skill none of these runs found: every pass of a two-digit target, where there
-#   is any, is one fixed sentence whose digits happen to add up to one of the targets.
+#   is any, writes the same fixed number, whose digits happen to add up to one of the targets,
+#   in variants of one sentence.
 #
 # `tests/test_fixes.py` checks each of these sentences against the stored `result.json`, so
 # they cannot silently go stale.
@@ -410,9 +412,9 @@ for key, value in mine.items():
 # one-digit targets pass and the two-digit ones do not (for those it writes the same sentence
 # with a single digit in the slot), and it no longer continues the snippet at all. The rule
 # checker cannot see that; it was never asked to. Where a run of the ablation passes a
-# two-digit target at all, it is by the same kind of accident: one fixed sentence whose digits
-# happen to add up to one of the possible targets, written for every two-digit prompt (the
-# ablation's table says how often). GRPO optimized exactly the reward it was given, and this is
+# two-digit target at all, it is by the same kind of accident: one sentence with a fixed number
+# whose digits happen to add up to one of the possible targets, written for every two-digit
+# prompt (the ablation's table says how often). GRPO optimized exactly the reward it was given, and this is
 # what the reward asks for. Nor is the stored run the rule: the ablation's full-recipe row gives
 # all three seeds, and one of them has barely begun to pass when its budget ends. To get
 # continuations that also obey the rule, the reward has to say so: a KL term to the pre-trained
