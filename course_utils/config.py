@@ -171,21 +171,27 @@ class Config:
             if choices:
                 need(getattr(self, f.name) in choices, f.name, f"choose one of {', '.join(choices)}")
         need(isinstance(self.model, str) and self.model.strip() != "", "model", "give a model name")
-        for name in ("prompt_tokens", "target_chars", "train_prompts", "eval_prompts", "epochs",
-                     "prompts_per_step", "grad_accum", "max_new_tokens", "updates_per_batch"):
-            need(isinstance(getattr(self, name), int) and getattr(self, name) >= 1, name,
-                 "must be an integer >= 1")
-        need(isinstance(self.group_size, int) and self.group_size >= 2, "group_size",
-             "must be an integer >= 2 (a group of one has no relative advantage)")
-        need(self.max_steps is None or (isinstance(self.max_steps, int) and self.max_steps >= 1),
-             "max_steps", "must be None or an integer >= 1")
+        # Sizes: whole numbers in a range. The upper bounds are far beyond any run this course
+        # plans, and stop a typo (an extra zero or three) before it costs a model load and an
+        # out-of-memory crash minutes later.
+        for name, low, high in SIZE_BOUNDS:
+            value = getattr(self, name)
+            need(isinstance(value, int) and not isinstance(value, bool) and low <= value <= high,
+                 name, f"must be an integer from {low} to {high:,}" + SIZE_REASONS.get(name, ""))
+        need(self.max_steps is None or (isinstance(self.max_steps, int) and
+                                        1 <= self.max_steps <= MAX_STEPS),
+             "max_steps", f"must be None or an integer from 1 to {MAX_STEPS:,}")
+        # Every other number must be a finite float in its range: inf or nan would pass a
+        # comparison such as lr > 0 and then wreck the run (NaN weights, or nothing learned).
+        for name, low, high, meaning in FLOAT_BOUNDS:
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and \
+                math.isfinite(value) and low <= value <= high
+            need(ok, name, f"must be a finite number {meaning}")
         need(self.prompts_per_step % self.grad_accum == 0, "grad_accum",
              f"must divide prompts_per_step={self.prompts_per_step} so every micro-batch holds "
              "whole groups")
-        need(self.temperature > 0, "temperature", "must be > 0 (use evaluation's greedy mode for 0)")
         need(self.lr > 0, "lr", "must be > 0")
-        need(self.weight_decay >= 0, "weight_decay", "must be >= 0")
-        need(self.warmup_steps >= 0, "warmup_steps", "must be >= 0")
         need(self.max_grad_norm > 0, "max_grad_norm", "must be > 0")
         need(0 < self.clip_eps_low < 1, "clip_eps_low", "must be in (0, 1)")
         need(self.clip_eps_high > 0, "clip_eps_high", "must be > 0")
@@ -194,10 +200,8 @@ class Config:
              "whose rewards are all equal has std 0, so its batch-centred rewards would be divided "
              "by 0 + eps and give advantages in the thousands (advantage_center='batch' with "
              "advantage_scale='batch' is the seed text's whole-batch standardization)")
-        need(self.kl_coef >= 0, "kl_coef", "must be >= 0")
         need(self.kl_schedule == "constant" or self.kl_coef > 0, "kl_schedule",
              "'reward_aware' scales kl_coef, so it needs kl_coef > 0")
-        need(self.entropy_coef >= 0, "entropy_coef", "must be >= 0")
         need(self.entropy_weight_max > 0, "entropy_weight_max", "must be > 0")
         need(self.entropy_bonus == "none" or self.entropy_coef > 0, "entropy_coef",
              f"must be > 0 when entropy_bonus='{self.entropy_bonus}'")
@@ -209,10 +213,7 @@ class Config:
         need(self.prompt_style == "chat" or self.digit_sum_min == self.digit_sum_max,
              "digit_sum_max", "must equal digit_sum_min when prompt_style='raw': a base model "
              "is never told the target, so it has to be the same for every prompt")
-        need(isinstance(self.max_sampling_rounds, int) and self.max_sampling_rounds >= 1,
-             "max_sampling_rounds", "must be an integer >= 1")
-        need(self.eval_every >= 0, "eval_every", "must be >= 0")
-        need(self.save_every >= 1, "save_every", "must be >= 1")
+
         need(self.precision != "fp16" or (self.device != "cpu" and _cuda_available()), "precision",
              "fp16 needs a CUDA GPU; use fp32 on a CPU")
         capability = _cuda_capability() if self.precision == "bf16" and self.device != "cpu" else None
@@ -223,13 +224,36 @@ class Config:
         need(self.optimizer != "adamw_8bit" or importlib.util.find_spec("bitsandbytes") is not None,
              "optimizer", "'adamw_8bit' needs bitsandbytes: pip install bitsandbytes (on a GPU "
              "machine), or use optimizer='adamw'")
-        need(isinstance(self.lora_rank, int) and self.lora_rank >= 0, "lora_rank",
-             "must be an integer >= 0 (0 turns LoRA off)")
         need(self.lora_alpha > 0, "lora_alpha", "must be > 0")
         need(self.lora_rank == 0 or importlib.util.find_spec("peft") is not None, "lora_rank",
              "LoRA needs peft: pip install peft, or use lora_rank=0 (full fine-tuning)")
         need(isinstance(self.out_dir, str) and self.out_dir != "", "out_dir", "give a directory")
         return self
+
+
+# (field, smallest, largest) for every whole-number setting; see Config.validate.
+SIZE_BOUNDS = [("prompt_tokens", 1, 8192), ("target_chars", 1, 10_000), ("train_prompts", 1, 10_000_000),
+               ("eval_prompts", 1, 100_000), ("epochs", 1, 1_000), ("prompts_per_step", 1, 4_096),
+               ("group_size", 2, 1_024), ("grad_accum", 1, 4_096), ("max_new_tokens", 1, 8_192),
+               ("updates_per_batch", 1, 64), ("max_sampling_rounds", 1, 64),
+               ("warmup_steps", 0, 10_000_000), ("eval_every", 0, 10_000_000),
+               ("save_every", 1, 10_000_000), ("lora_rank", 0, 4_096),
+               ("digit_sum_min", 0, 90_000), ("digit_sum_max", 0, 90_000),
+               ("seed", 0, 2**31 - 1)]
+SIZE_REASONS = {"group_size": " (a group of one has no relative advantage)",
+                "lora_rank": " (0 turns LoRA off)"}
+MAX_STEPS = 10_000_000
+# (field, smallest, largest, the range in words) for every real-number setting.
+FLOAT_BOUNDS = [("temperature", 0.01, 10.0, "from 0.01 to 10 (evaluation has a greedy mode for 0)"),
+                ("lr", 0.0, 1.0, "> 0 and at most 1"),
+                ("weight_decay", 0.0, 10.0, "from 0 to 10"),
+                ("max_grad_norm", 0.0, 1e6, "> 0 and at most 1e6"),
+                ("clip_eps_low", 0.0, 1.0, "in (0, 1)"),
+                ("clip_eps_high", 0.0, 10.0, "> 0 and at most 10"),
+                ("kl_coef", 0.0, 100.0, "from 0 to 100"),
+                ("entropy_coef", 0.0, 100.0, "from 0 to 100"),
+                ("entropy_weight_max", 0.0, 100.0, "> 0 and at most 100"),
+                ("lora_alpha", 0.0, 1e6, "> 0 and at most 1e6")]
 
 
 class ConfigError(ValueError):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import importlib.metadata
 import importlib.util
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -73,16 +74,38 @@ def gguf_special_token_ids(path: Path) -> dict[str, int]:
     return ids
 
 
+# A hub id: "name" or "owner/name", letters, digits, '-', '_' and '.'.
+HUB_ID = re.compile(r"[A-Za-z0-9][\w.-]*(/[A-Za-z0-9][\w.-]*)?")
+
+
 def check_available(name: str) -> None:
-    """Fail fast (before any loading) if ``name`` cannot possibly be loaded here."""
+    """Fail fast, before the run writes anything, if ``name`` cannot be loaded here: the
+    embedded model needs its GGUF file; a local directory needs a ``config.json``; a hub id must
+    be well formed and its configuration reachable (a few kB, from the hub or its cache)."""
     if name in (EMBEDDED, "embedded", TINY):
         if not (embedded_cache() / "config.json").exists():
             gguf_path()
-    else:
-        try:
-            import transformers  # noqa: F401
-        except ImportError as err:  # pragma: no cover - transformers is a hard dependency
-            raise ModelNotAvailable("transformers is not installed: pip install -r requirements.txt") from err
+        return
+    fix = (f"use the embedded model ('{EMBEDDED}', offline), a directory written by "
+           "save_pretrained, or a hub id such as Qwen/Qwen2.5-0.5B-Instruct")
+    path = Path(name).expanduser()
+    if path.is_dir():
+        if not (path / "config.json").exists():
+            raise ModelNotAvailable(f"model {name!r}: the directory has no config.json; {fix}")
+        return
+    if name.startswith((".", "/", "~")) or "\\" in name:
+        raise ModelNotAvailable(f"model {name!r}: no such directory; {fix}")
+    if not HUB_ID.fullmatch(name):
+        raise ModelNotAvailable(f"model {name!r} is neither a directory nor a hub id of the form "
+                                f"owner/name; {fix}")
+    try:
+        from transformers import AutoConfig
+
+        AutoConfig.from_pretrained(name)
+    except Exception as err:  # offline, unknown repository, gated, ...: one line, not 75
+        reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
+        raise ModelNotAvailable(f"model {name!r} cannot be loaded here ({reason}); if this machine "
+                                f"is offline, {fix}") from None
 
 
 def embedded_model_dir() -> Path:

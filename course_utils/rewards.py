@@ -34,24 +34,48 @@ lists in ``kwargs``, exactly as TRL passes extra dataset columns:
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 ASCII_DIGITS = "0123456789"
 
 
+def _content_text(content: Any) -> str:
+    """A chat message's content as text: a string; None (a message with no text, such as a tool
+    call) is empty; a list of parts (``{"type": "text", "text": ...}``) is its text parts joined."""
+    if content is None:
+        return ""
+    if isinstance(content, str):
+        return content
+    if isinstance(content, (list, tuple)):
+        parts = []
+        for part in content:
+            if isinstance(part, str):
+                parts.append(part)
+            elif isinstance(part, dict) and part.get("type", "text") == "text":
+                parts.append(_content_text(part.get("text")))
+            elif not isinstance(part, dict):
+                raise TypeError(f"a message's content parts must be str or dicts, got "
+                                f"{type(part).__name__}: {part!r:.80}")
+        return "".join(parts)
+    raise TypeError(f"a message's content must be a str, a list of parts or None, got "
+                    f"{type(content).__name__}: {content!r:.80}")
+
+
 def completion_text(completion: Any) -> str:
     """The text a rule is applied to: str as given, or the last message of a chat completion.
 
     TRL passes plain strings for standard datasets and lists of ``{"role", "content"}`` dicts
-    for conversational ones; both are accepted. Surrounding whitespace is stripped.
+    for conversational ones; both are accepted, and a message's content may be a string, a list
+    of text parts, or None (no text). Surrounding whitespace is stripped.
     """
     if isinstance(completion, str):
         text = completion
     elif isinstance(completion, (list, tuple)) and completion and isinstance(completion[-1], dict):
-        text = str(completion[-1].get("content", ""))
+        text = _content_text(completion[-1].get("content"))
     elif isinstance(completion, dict):
-        text = str(completion.get("content", ""))
+        text = _content_text(completion.get("content"))
     else:
         raise TypeError(f"a completion must be a str or a list of chat messages, got "
                         f"{type(completion).__name__}: {completion!r:.80}")
@@ -87,7 +111,7 @@ def check(completion: Any, target_chars: int, target_digit_sum: int) -> RuleChec
 def shaped_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
     """Partial credit in (0, 1]: 1/2 * length credit + 1/2 * digit credit, where
 
-    length credit = 1 / (1 + |n_chars - target_chars| / target_chars)
+    length credit = 1 / (1 + |n_chars - target_chars| / max(target_chars, 1))
     digit credit  = 1 / (1 + |digit_sum - target_digit_sum| / max(target_digit_sum, 1))
 
     A miss by the whole target halves a credit; a miss ten times the target leaves 1/11. Each is
@@ -95,26 +119,46 @@ def shaped_score(result: RuleCheck, target_chars: int, target_digit_sum: int) ->
     ramp clipped at 0, a completion three times too long still scores better than one five
     times too long, so early, very long completions still give a learning signal.
     """
-    length_credit = 1.0 / (1.0 + abs(result.n_chars - target_chars) / target_chars)
+    length_credit = 1.0 / (1.0 + abs(result.n_chars - target_chars) / max(target_chars, 1))
     digit_credit = 1.0 / (1.0 + abs(result.digit_sum - target_digit_sum) / max(target_digit_sum, 1))
     return 0.5 * length_credit + 0.5 * digit_credit
 
 
 def _targets(name: str, kwargs: dict, n: int) -> list[int]:
-    """Per-completion targets from TRL-style kwargs (a list, one entry per completion)."""
+    """Per-completion targets from TRL-style kwargs (a list, one entry per completion): whole
+    numbers >= 0 (Python or numpy integers, or floats with no fraction)."""
     if name not in kwargs:
         raise KeyError(f"reward needs the '{name}' column (one value per completion); got only "
                        f"{sorted(kwargs)}")
     values = kwargs[name]
-    if isinstance(values, int):  # convenience: one target for every completion
-        return [values] * n
+    if isinstance(values, numbers.Number):  # convenience: one target for every completion
+        values = [values] * n
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+        raise TypeError(f"'{name}' must be a list with one target per completion, got "
+                        f"{type(values).__name__}")
     if len(values) != n:
         raise ValueError(f"'{name}' has {len(values)} values for {n} completions")
-    return [int(v) for v in values]
+    out = []
+    for v in values:
+        whole = isinstance(v, numbers.Integral) or (isinstance(v, numbers.Real) and float(v).is_integer())
+        if isinstance(v, bool) or not whole or v < 0:
+            raise ValueError(f"'{name}' must hold whole numbers >= 0, got {v!r}")
+        out.append(int(v))
+    return out
+
+
+def _completions(completions: Any) -> Sequence[Any]:
+    """The completions argument: a list (one entry per completion), never a bare string, which
+    would otherwise be scored one character at a time."""
+    if isinstance(completions, (str, bytes)):
+        raise TypeError("completions must be a list of completions, got a single string; wrap "
+                        "it in a list")
+    return completions
 
 
 def check_all(completions: Sequence[Any], **kwargs) -> list[RuleCheck]:
     """``check`` on every completion, targets taken from kwargs as TRL passes them."""
+    completions = _completions(completions)
     n = len(completions)
     chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
     return [check(c, L, S) for c, L, S in zip(completions, chars, sums)]
@@ -127,6 +171,7 @@ def binary_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) 
 
 def shaped_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
     """Partial-credit reward in [0, 1] (see ``shaped_score``); 1.0 exactly when both pass."""
+    completions = _completions(completions)
     n = len(completions)
     chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
     return [shaped_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
@@ -167,6 +212,7 @@ def sharp_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> 
 
 def sharp_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
     """Partial credit that pays an exact hit clearly more than a near miss (``sharp_score``)."""
+    completions = _completions(completions)
     n = len(completions)
     chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
     return [sharp_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]

@@ -16,6 +16,7 @@ import argparse
 import contextlib
 import json
 import math
+import os
 import time
 import typing
 from dataclasses import dataclass, field
@@ -465,18 +466,27 @@ def _trainer_state(policy: Policy, step: int, generators: torch.Tensor) -> dict:
 
 def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
     """The main job: evaluate, train with GRPO, evaluate again; write everything to out_dir."""
-    from tqdm.auto import tqdm
-
     started = time.perf_counter()
     cfg.validate()
-    models.check_available(cfg.model)           # fail before anything slow happens
+    models.check_available(cfg.model)           # fail before anything slow or written happens
     run_dir = Path(cfg.out_dir)
+    # The lock comes first: nothing in run_dir is read or written without it. Under accelerate
+    # every process runs this function on the same run_dir; the first one (rank 0) holds it.
+    first_process = os.environ.get("RANK", "0") == "0"
+    with checkpoint.RunLock(run_dir) if first_process else contextlib.nullcontext():
+        return _train_in(run_dir, cfg, resume, progress, started)
+
+
+def _train_in(run_dir: Path, cfg: Config, resume: bool, progress: bool, started: float) -> dict:
+    """``train``'s body, run while the run directory is locked."""
+    from tqdm.auto import tqdm
+
     run_dir.mkdir(parents=True, exist_ok=True)
     found = checkpoint.find(run_dir) if resume else None
     state = checkpoint.load_state(found, cfg.to_dict()) if found else None
     if resume and found is None:
         print(f"[course_utils] no checkpoint in {run_dir}: starting from the beginning")
-    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+    checkpoint.write_json(run_dir / "config.json", cfg.to_dict())
 
     policy = setup(cfg, init_from=found)
     # With several processes (accelerate launch) all of them train; only the main one evaluates
@@ -516,7 +526,7 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
         summary["before"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg,
                                             policy.eos_ids, greedy=mode == "greedy")
                              for mode in ("sampled", "greedy")}
-        summary_path.write_text(json.dumps(summary, indent=2))
+        checkpoint.write_json(summary_path, summary)
         _print_eval("before training", summary["before"])
 
     total = cfg.total_steps
@@ -543,13 +553,14 @@ def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
 
     summary["after"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids,
                                        greedy=mode == "greedy") for mode in ("sampled", "greedy")}
-    summary["steps"] = total
+    # the steps the model has taken: a checkpoint resumed with a smaller max_steps is past it
+    summary["steps"] = max(start_step, total)
     # wall time, evaluation included, summed over the invocations that finished: a run that
     # finished and was then extended (--resume with a larger --max_steps) adds this one's time
     # to the first; an invocation that crashed wrote no time, so its lost work is not counted
     summary["seconds"] = summary.get("seconds", 0.0) + time.perf_counter() - started
     summary["resumed"] = bool(state)
-    summary_path.write_text(json.dumps(summary, indent=2))
+    checkpoint.write_json(summary_path, summary)
     from .plots import plot_metrics
 
     plot_metrics(log.read(), run_dir / "curves.png")
@@ -640,9 +651,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    overrides = {name: _parse(getattr(args, name), str(f.type), name)
-                 for name, f in Config.__dataclass_fields__.items() if getattr(args, name) is not None}
-    try:
+    try:  # a value that is not of its field's type is a config error like any other: one line
+        overrides = {name: _parse(getattr(args, name), str(f.type), name)
+                     for name, f in Config.__dataclass_fields__.items() if getattr(args, name) is not None}
         cfg = load_config(args.preset, **overrides)
     except ConfigError as err:
         raise SystemExit(f"error: {err}") from None

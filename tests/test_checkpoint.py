@@ -68,3 +68,33 @@ def test_a_checkpoint_from_before_a_new_setting_resumes_at_that_settings_default
     assert checkpoint.load_state(tmp_path, config)["config"] == old
     with pytest.raises(checkpoint.CheckpointError, match="device: checkpoint 'auto' vs now 'cpu'"):
         checkpoint.load_state(tmp_path, {**config, "device": "cpu"})
+
+
+# --- issue 14, findings 3 and 11: a damaged log is refused, JSON files are written atomically ---
+
+def test_only_a_torn_last_line_of_the_metrics_log_is_tolerated(tmp_path):
+    log = checkpoint.MetricsLog(tmp_path / "metrics.jsonl")
+    for step in (1, 2, 3):
+        log.append({"step": step})
+    with open(log.path, "a") as f:
+        f.write('{"step": 4, "rew')                     # a crash mid-write
+    assert [r["step"] for r in log.read()] == [1, 2, 3]
+    lines = log.path.read_text().splitlines()
+    lines[1] = "garbage"                                 # damage in the middle
+    log.path.write_text("\n".join(lines[:3]) + "\n")
+    with pytest.raises(checkpoint.CheckpointError, match="line 2 of 3.*damaged"):
+        log.read()
+
+
+def test_json_files_are_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
+    path = tmp_path / "summary.json"
+    checkpoint.write_json(path, {"before": 1})
+    assert json.loads(path.read_text()) == {"before": 1}
+
+    def torn(*args, **kwargs):
+        raise OSError("disk full")
+    monkeypatch.setattr(checkpoint.os, "fsync", torn)
+    with pytest.raises(OSError):
+        checkpoint.write_json(path, {"before": 1, "after": 2})
+    assert json.loads(path.read_text()) == {"before": 1}     # the old file, whole
+    assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]  # no temporary left behind

