@@ -75,5 +75,5 @@ def test_lora_with_gradient_checkpointing_gives_the_same_gradient():
 
 
 def test_lora_rank_is_validated():
-    with pytest.raises(ConfigError, match="lora_rank=-1 is invalid: must be an integer >= 0"):
+    with pytest.raises(ConfigError, match="lora_rank=-1 is invalid: must be an integer from 0"):
         load_config("smoke", lora_rank=-1)
