@@ -55,7 +55,8 @@ def run_arm(arm: str, seed: int) -> Path:
     if finished(out):
         return out
     overrides = {**ARMS[arm], **(SMOKE if smoke_mode() else {})}
-    train.train(load_config("cpu", seed=seed, out_dir=str(out), **overrides), progress=False)
+    # resume=True: a run that stopped part-way (a crash, Ctrl-C) continues where it stopped
+    train.train(load_config("cpu", seed=seed, out_dir=str(out), **overrides), resume=True, progress=False)
     return out
 
 

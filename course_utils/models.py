@@ -108,6 +108,22 @@ def check_available(name: str) -> None:
                                 f"is offline, {fix}") from None
 
 
+def architecture(name: str):
+    """The shape of model ``name`` for ``plan.py``, read from its configuration only (no weights
+    load); None where that is not a Llama/Qwen2-style configuration (gpt2), or is unreachable."""
+    from . import plan
+
+    if name in (EMBEDDED, "embedded"):
+        return plan.SMOLLM2_135M
+    try:
+        from transformers import AutoConfig
+
+        config = tiny_qwen2_config() if name == TINY else AutoConfig.from_pretrained(name)
+        return plan.Architecture.estimate(config)
+    except Exception:  # noqa: BLE001 - no plan means no check, never a failed run
+        return None
+
+
 def embedded_model_dir() -> Path:
     """Directory of the converted SmolLM2 (model + tokenizer); converts once on first use."""
     target = embedded_cache()
@@ -160,16 +176,22 @@ def load_tokenizer(name: str):
     return tokenizer
 
 
-def tiny_qwen2(vocab_size: int, seed: int = 0, **overrides):
-    """A random-weight Qwen2-architecture model small enough for unit tests (~3.3M params)."""
-    from transformers import Qwen2Config, Qwen2ForCausalLM
+def tiny_qwen2_config(vocab_size: int = 49_152, **overrides):
+    from transformers import Qwen2Config
 
     settings = dict(vocab_size=vocab_size, hidden_size=64, intermediate_size=128,
                     num_hidden_layers=2, num_attention_heads=4, num_key_value_heads=2,
                     max_position_embeddings=512, tie_word_embeddings=True)
-    settings.update(overrides)
+    return Qwen2Config(**{**settings, **overrides})
+
+
+def tiny_qwen2(vocab_size: int, seed: int = 0, **overrides):
+    """A random-weight Qwen2-architecture model small enough for unit tests (~3.3M params)."""
+    from transformers import Qwen2ForCausalLM
+
+    config = tiny_qwen2_config(vocab_size, **overrides)
     torch.manual_seed(seed)
-    return Qwen2ForCausalLM(Qwen2Config(**settings))
+    return Qwen2ForCausalLM(config)
 
 
 def load_policy(name: str, dtype: torch.dtype = torch.float32, seed: int = 0):

@@ -47,6 +47,17 @@ class Architecture:
                    kv_dim=kv_heads * head_dim, intermediate=config.intermediate_size,
                    vocab=config.vocab_size)
 
+    @classmethod
+    def estimate(cls, config) -> "Architecture":
+        """From a Llama/Qwen2-style config alone, before any weight is loaded: the parameter
+        count is the embeddings (twice if untied) plus per block q and o (h x h each), k and v
+        (h x kv each) and the MLP's three h x i matrices (norms and biases are negligible)."""
+        arch = cls.from_config(config, n_params=0)
+        blocks = arch.layers * (2 * arch.hidden ** 2 + 2 * arch.hidden * arch.kv_dim
+                                + 3 * arch.hidden * arch.intermediate)
+        embeddings = arch.n_embedding * (1 if getattr(config, "tie_word_embeddings", True) else 2)
+        return cls(**{**arch.__dict__, "n_params": embeddings + blocks})
+
     @property
     def activation_values_per_token_layer(self) -> int:
         return 11 * self.hidden + 4 * self.kv_dim + 4 * self.intermediate
@@ -65,6 +76,11 @@ class Architecture:
 # Qwen2.5-0.5B-Instruct (tied embeddings): 494,032,768 parameters.
 QWEN25_05B = Architecture(n_params=494_032_768, hidden=896, layers=24, kv_dim=2 * 64,
                           intermediate=4864, vocab=151_936)
+
+
+# SmolLM2-135M-Instruct (the embedded model, tied embeddings): 134,515,008 parameters.
+SMOLLM2_135M = Architecture(n_params=134_515_008, hidden=576, layers=30, kv_dim=3 * 64,
+                            intermediate=1536, vocab=49_152)
 
 
 @dataclass(frozen=True)
@@ -175,3 +191,27 @@ def format_plan(arch: Architecture, cfg, prompt_len: int, completion_len: int,
                  f"{t['steps']} steps = {t['run hours']:.1f} h (assumes {device.train_efficiency:.0%} "
                  f"of peak FLOP/s and {device.decode_overhead_s * 1000:.0f} ms per decoding step)")
     return "\n".join(lines)
+
+
+# A run is refused only when the plan exceeds the device's whole memory by this factor: the plan
+# is an estimate (tests/test_plan.py bounds its error), and a run near the limit is the user's
+# call to try, but one planned at several times the memory cannot fit and would only fail late.
+CERTAINLY_TOO_BIG = 1.25
+
+
+def check_fits(cfg, arch: Architecture | None, memory_bytes: int | None, device_name: str) -> None:
+    """ConfigError, before any model loads, if ``cfg`` certainly cannot fit in ``memory_bytes``
+    (nothing is checked when the architecture or the memory is unknown)."""
+    if arch is None or not memory_bytes:
+        return
+    peak = peak_bytes(memory_plan(arch, cfg, prompt_len=cfg.prompt_tokens,
+                                  completion_len=cfg.max_new_tokens))
+    if peak > CERTAINLY_TOO_BIG * memory_bytes:
+        from .config import ConfigError
+
+        raise ConfigError(
+            f"group_size {cfg.group_size} x prompts_per_step {cfg.prompts_per_step} / grad_accum "
+            f"{cfg.grad_accum} with max_new_tokens {cfg.max_new_tokens} needs about "
+            f"{peak / GiB:.0f} GiB (course_utils.plan), more than {device_name}'s "
+            f"{memory_bytes / GiB:.0f} GiB: lower group_size or prompts_per_step, raise grad_accum, "
+            f"or shorten max_new_tokens")

@@ -53,8 +53,9 @@ def run(name: str, seed: int, **overrides) -> Path:
     if finished(out):
         return out
     # a progress bar for real runs (minutes each); none in smoke mode, where runs take seconds
+    # resume=True: a run that stopped part-way (a crash, Ctrl-C) continues where it stopped
     train.train(load_config("cpu", seed=seed, out_dir=str(out), **{**base_settings(), **overrides}),
-                progress=not smoke_mode())
+                resume=True, progress=not smoke_mode())
     return out
 
 

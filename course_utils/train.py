@@ -1,8 +1,12 @@
 """The GRPO training loop shared by the notebooks and the command line.
 
-    python -m course_utils.train --preset cpu          # the main job: offline, ~10 min on 2 cores
+    python -m course_utils.train --preset cpu             # the main job: offline, ~13 min on 2 cores
     python -m course_utils.train --preset cpu --lr 3e-5 --out_dir runs/mine
-    python -m course_utils.train --preset cpu --resume # continue a run from its checkpoint
+    python -m course_utils.train --preset cpu --resume    # continue a run from its checkpoint
+    python -m course_utils.train --preset cpu --overwrite # replace the run in out_dir
+
+Ctrl-C (or SIGTERM) stops after the step in flight, saves a checkpoint and prints the command
+that continues the run; a second Ctrl-C stops at once.
 
 One step: sample G completions for each of B prompts (no autograd) -> score them with the rule
 checker -> group-relative advantages -> forward the completions with autograd -> GRPO loss ->
@@ -17,6 +21,8 @@ import contextlib
 import json
 import math
 import os
+import shlex
+import sys
 import time
 import typing
 from dataclasses import dataclass, field
@@ -24,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from . import checkpoint, data, losses, models, rewards
+from . import checkpoint, data, interrupt, losses, models, plan, rewards
 from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
 from .rollout import completion_logprobs, concat_rollouts, rollout
 
@@ -464,28 +470,118 @@ def _trainer_state(policy: Policy, step: int, generators: torch.Tensor) -> dict:
                 config=policy.cfg.to_dict())
 
 
-def train(cfg: Config, resume: bool = False, progress: bool = True) -> dict:
-    """The main job: evaluate, train with GRPO, evaluate again; write everything to out_dir."""
+NOTEBOOK_RESUME = "run train.train(cfg, resume=True) again (in a notebook: run the training cell again)"
+
+
+def train(cfg: Config, resume: bool = False, progress: bool = True, overwrite: bool = False,
+          how_to_resume: str = NOTEBOOK_RESUME) -> dict:
+    """The main job: evaluate, train with GRPO, evaluate again; write everything to out_dir.
+
+    A fresh run refuses a directory that already holds a run unless ``overwrite``; ``resume``
+    continues from the last whole checkpoint (or starts a run that stopped before its first
+    one). SIGINT or SIGTERM stops after the step in flight with a checkpoint saved, and raises
+    ``interrupt.Interrupted`` whose message ends with ``how_to_resume``."""
     started = time.perf_counter()
     cfg.validate()
+    if resume and overwrite:
+        raise ConfigError("resume and overwrite contradict each other: resume continues the run "
+                          "in out_dir, overwrite deletes it; choose one")
     models.check_available(cfg.model)           # fail before anything slow or written happens
+    plan.check_fits(cfg, models.architecture(cfg.model), *device_memory(cfg))
     run_dir = Path(cfg.out_dir)
     # The lock comes first: nothing in run_dir is read or written without it. Under accelerate
     # every process runs this function on the same run_dir; the first one (rank 0) holds it.
     first_process = os.environ.get("RANK", "0") == "0"
     with checkpoint.RunLock(run_dir) if first_process else contextlib.nullcontext():
-        return _train_in(run_dir, cfg, resume, progress, started)
+        with interrupt.StopRequests(how_to_resume) as stop:
+            return _train_in(run_dir, cfg, resume, overwrite, progress, started, stop)
 
 
-def _train_in(run_dir: Path, cfg: Config, resume: bool, progress: bool, started: float) -> dict:
+def device_memory(cfg: Config) -> tuple[int | None, str]:
+    """The memory of the device the run will use, in bytes (None if unknown), and its name."""
+    if cfg.device in ("auto", "cuda") and torch.cuda.is_available():
+        return torch.cuda.get_device_properties(0).total_memory, torch.cuda.get_device_name(0)
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"), "this machine's RAM"
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - no sysconf (Windows)
+        return None, "this machine"
+
+
+def _open_run(run_dir: Path, cfg: Config, resume: bool, overwrite: bool) -> Path | None:
+    """Make ``run_dir`` ready for this invocation and return the checkpoint to resume from.
+
+    Refuses, rather than guesses, whenever the directory's contents do not fit the request:
+    a fresh run over an existing one (without ``overwrite``), or a resume whose checkpoint,
+    log and summary do not belong together."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint.remove_leftovers(run_dir)
+    contents = checkpoint.run_contents(run_dir)
+    if not resume:
+        if contents and not overwrite:
+            raise checkpoint.CheckpointError(
+                f"{run_dir} already holds a run ({', '.join(contents)}): continue it with --resume "
+                f"(resume=True), replace it with --overwrite (overwrite=True), or choose another "
+                f"out_dir")
+        checkpoint.clear(run_dir)
+        return None
+    log = checkpoint.MetricsLog(run_dir / "metrics.jsonl")
+    logged = log.read()
+    last_logged = logged[-1]["step"] if logged else 0
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    found = checkpoint.find(run_dir)
+    if found is None:
+        # only a run that stopped before its first checkpoint may start again from step 0
+        saved_path = run_dir / "config.json"
+        saved = json.loads(saved_path.read_text()) if saved_path.exists() else None
+        different = checkpoint.config_differences(saved, cfg.to_dict()) if saved else ""
+        first_save = (saved or {}).get("save_every", cfg.save_every)
+        why = ("its config.json is another run's (" + different + ")" if different else
+               "it is a finished run" if "after" in summary else
+               f"its metrics reach step {last_logged}, past the first checkpoint at step "
+               f"{first_save}" if last_logged >= first_save else "")
+        if why:
+            raise checkpoint.CheckpointError(
+                f"{run_dir} has no checkpoint to resume from, and starting it again would overwrite "
+                f"it: {why}. Start over with --overwrite (overwrite=True), or use another out_dir")
+        if contents:
+            print(f"[course_utils] {run_dir} stopped before its first checkpoint: starting it again")
+        checkpoint.clear(run_dir)
+        return None
+    step = torch.load(found / checkpoint.STATE_FILE, weights_only=True)["step"]
+    if "before" not in summary:
+        raise checkpoint.CheckpointError(
+            f"{summary_path} is missing or has no before-training evaluation, so the run's "
+            f"before/after comparison cannot be completed: restore the file, or start over with "
+            f"--overwrite (overwrite=True)")
+    if last_logged < step:
+        raise checkpoint.CheckpointError(
+            f"{log.path} ends at step {last_logged} but the checkpoint is at step {step}: steps are "
+            f"missing from the log. Restore it, or start over with --overwrite (overwrite=True)")
+    return found
+
+
+def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progress: bool,
+              started: float, stop: interrupt.StopRequests) -> dict:
     """``train``'s body, run while the run directory is locked."""
     from tqdm.auto import tqdm
 
-    run_dir.mkdir(parents=True, exist_ok=True)
-    found = checkpoint.find(run_dir) if resume else None
+    if int(os.environ.get("WORLD_SIZE", "1")) == 1:
+        found = _open_run(run_dir, cfg, resume, overwrite)
+    else:  # accelerate launch: the first process readies run_dir; the others then only look
+        from accelerate.state import PartialState
+
+        found = _open_run(run_dir, cfg, resume, overwrite) if os.environ.get("RANK") == "0" else None
+        PartialState(cpu=cfg.device == "cpu").wait_for_everyone()
+        if os.environ.get("RANK") != "0" and resume:
+            found = checkpoint.find(run_dir)
     state = checkpoint.load_state(found, cfg.to_dict()) if found else None
-    if resume and found is None:
-        print(f"[course_utils] no checkpoint in {run_dir}: starting from the beginning")
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if (state and summary_path.exists()) else {}
+    if state and state["step"] >= cfg.total_steps and "after" in summary:
+        # a re-run cell or command on a finished run: nothing to train, nothing to rewrite
+        print(f"[course_utils] {run_dir} is finished ({summary['steps']} steps): nothing to do")
+        return summary
     checkpoint.write_json(run_dir / "config.json", cfg.to_dict())
 
     policy = setup(cfg, init_from=found)
@@ -513,15 +609,11 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, progress: bool, started:
         if main:
             log.truncate_after(start_step)
             print(f"[course_utils] resumed from {found} at step {start_step}")
-    elif log.path.exists() and main:
-        log.path.unlink()  # a fresh run in an old directory starts a fresh log
 
     train_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=False)
     eval_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=True)
     model = policy.model
 
-    summary_path = run_dir / "summary.json"
-    summary = json.loads(summary_path.read_text()) if (state and summary_path.exists()) else {}
     if "before" not in summary and main:
         summary["before"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg,
                                             policy.eos_ids, greedy=mode == "greedy")
@@ -533,6 +625,7 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, progress: bool, started:
     bar = tqdm(range(start_step, total), initial=start_step, total=total, desc="GRPO",
                disable=not (progress and main))
     for step in bar:
+        stop.deferring = True   # a signal from here on ends this step first (see interrupt.py)
         metrics = grpo_step(policy, batch_for_step(step, train_prompts, cfg),
                             refill=lambda k, step=step: refill_batch(step, k, train_prompts, cfg))
         record = dict(step=step + 1, epoch=step // cfg.steps_per_epoch, **metrics)
@@ -543,11 +636,15 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, progress: bool, started:
             log.append(record)
         bar.set_postfix(reward=f"{metrics['reward_mean']:.3f}", len_ok=f"{metrics['pass_length']:.2f}",
                         both=f"{metrics['pass_both']:.2f}")
-        if (step + 1) % cfg.save_every == 0 or step + 1 == total:
-            generators = _generator_states(policy)  # a collective: every process takes part
-            if main:
-                checkpoint.save(run_dir, policy.accelerator.unwrap_model(model), policy.tokenizer,
-                                _trainer_state(policy, step + 1, generators))
+        saved = (step + 1) % cfg.save_every == 0 or step + 1 == total
+        if saved:
+            _save(run_dir, policy, step + 1)
+        if _agree(policy, stop.requested):   # every process stops after the same step
+            if not saved:
+                _save(run_dir, policy, step + 1)
+            bar.close()
+            raise stop.stopped(step + 1, total)
+        stop.deferring = False
     if not main:
         return {}
 
@@ -568,6 +665,21 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, progress: bool, started:
     (run_dir / "report.md").write_text(report)
     print(report)
     return summary
+
+
+def _save(run_dir: Path, policy: Policy, step: int) -> None:
+    generators = _generator_states(policy)  # a collective: every process takes part
+    if policy.accelerator.is_main_process:
+        checkpoint.save(run_dir, policy.accelerator.unwrap_model(policy.model), policy.tokenizer,
+                        _trainer_state(policy, step, generators))
+
+
+def _agree(policy: Policy, requested: bool) -> bool:
+    """Whether any process was asked to stop (with one process: whether this one was)."""
+    if policy.accelerator.num_processes == 1:
+        return requested
+    flag = torch.tensor([float(requested)], device=policy.accelerator.device)
+    return bool(policy.accelerator.reduce(flag, reduction="sum").item() > 0)
 
 
 def _print_eval(title: str, result: dict) -> None:
@@ -642,6 +754,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preset", default="smoke" if smoke_mode() else "cpu",
                         help=f"one of {', '.join(PRESETS)} (smoke when COURSE_SMOKE=1)")
     parser.add_argument("--resume", action="store_true", help="continue from out_dir's checkpoint")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="delete the run already in out_dir and start a new one")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     for f in Config.__dataclass_fields__.values():
         parser.add_argument(f"--{f.name}", default=None, metavar=str(f.type).split(" ")[0].upper(),
@@ -659,11 +773,19 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"error: {err}") from None
     print(f"[course_utils] preset {args.preset}: {cfg.total_steps} steps of {cfg.prompts_per_step} "
           f"prompts x {cfg.group_size} completions, model {cfg.model}, writing to {cfg.out_dir}")
+    # the command that continues this run: these arguments, with --resume and without --overwrite
+    argv = list(sys.argv[1:] if argv is None else argv)
+    again = ["python", "-m", "course_utils.train"] + [a for a in argv if a not in ("--resume", "--overwrite")]
+    how_to_resume = "run: " + shlex.join(again + ["--resume"])
     try:
-        train(cfg, resume=args.resume, progress=not args.no_progress)
+        train(cfg, resume=args.resume, progress=not args.no_progress, overwrite=args.overwrite,
+              how_to_resume=how_to_resume)
     except (models.ModelNotAvailable, data.DataUnavailable, checkpoint.CheckpointError,
-            RewardError) as err:
+            RewardError, ConfigError) as err:
         raise SystemExit(f"error: {err}") from None
+    except interrupt.Interrupted as stopped:
+        print(f"[course_utils] {stopped}", file=sys.stderr)
+        return stopped.exit_code
     return 0
 
 

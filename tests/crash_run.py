@@ -1,13 +1,14 @@
-"""A smoke training run that kills itself with SIGKILL at a chosen point, for
-tests/test_crash.py. ``python tests/crash_run.py OUT_DIR POINT [--resume]``; POINT is one of
-KILL_POINTS (or 'none'). SIGKILL cannot be caught: nothing is flushed, no finally block runs,
-exactly like a Colab runtime that disappears."""
+"""A smoke training run, through the command line's ``main``, that kills itself with SIGKILL at
+a chosen point or signals itself, for tests/test_crash.py and tests/test_kill_sweep.py.
+``python tests/crash_run.py OUT_DIR POINT [--resume]``; POINT is one of KILL_POINTS, one of
+SIGNAL_POINTS, or 'none'. SIGKILL cannot be caught: nothing is flushed, no finally block runs,
+exactly like a Colab runtime that disappears. SIGINT and SIGTERM are caught: the run stops
+cleanly and prints the command that continues it."""
 import os
 import signal
 import sys
 
 from course_utils import checkpoint, train
-from course_utils.config import load_config
 
 STEPS, SAVE_EVERY = 6, 2
 
@@ -52,7 +53,7 @@ def arm(point: str) -> None:
     elif point == "between_renames":             # old checkpoint moved aside, new not in place
         def replace(src, dst):
             real_replace(src, dst)
-            if str(dst).endswith(".checkpoint-old") and train_step[0] == 4:
+            if str(dst).endswith(checkpoint.PREVIOUS) and train_step[0] == 4:
                 die()
         train_step = [0]
 
@@ -69,16 +70,34 @@ def arm(point: str) -> None:
                 die()
             return out
         train.checkpoint.save = save
+    elif point in SIGNAL_POINTS:                 # a signal (or two) in the middle of step 3
+        how, times = point.rsplit("_", 1)
+        sig = signal.SIGINT if how == "sigint" else signal.SIGTERM
+        real_step = train.grpo_step
+        calls = [0]
+
+        def grpo_step(*args, **kwargs):
+            calls[0] += 1
+            if calls[0] == 3:
+                for _ in range(int(times)):
+                    os.kill(os.getpid(), sig)
+            return real_step(*args, **kwargs)
+        train.grpo_step = grpo_step
     elif point != "none":
         raise SystemExit(f"unknown kill point {point!r}")
 
 
 KILL_POINTS = ("before_first_checkpoint", "after_metrics_before_checkpoint", "torn_metrics_line",
                "during_checkpoint_write", "between_renames", "after_checkpoint")
+SIGNAL_POINTS = ("sigint_1", "sigterm_1", "sigint_2")   # the signal, and how many times
+
+
+def arguments(out_dir: str) -> list[str]:
+    return ["--preset", "smoke", "--out_dir", out_dir, "--max_steps", str(STEPS),
+            "--save_every", str(SAVE_EVERY), "--train_prompts", "16", "--no-progress"]
+
 
 if __name__ == "__main__":
     out_dir, point = sys.argv[1], sys.argv[2]
     arm(point)
-    cfg = load_config("smoke", out_dir=out_dir, max_steps=STEPS, save_every=SAVE_EVERY,
-                      train_prompts=16)
-    train.train(cfg, resume="--resume" in sys.argv, progress=False)
+    raise SystemExit(train.main(arguments(out_dir) + (["--resume"] if "--resume" in sys.argv else [])))

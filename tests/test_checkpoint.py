@@ -1,5 +1,6 @@
 """Checkpoints: a crash between the two renames of a save leaves a usable checkpoint."""
 import json
+import shutil
 
 import pytest
 import torch
@@ -15,17 +16,21 @@ class _Saveable:
         (path / "weights.json").write_text(json.dumps(self.tag))
 
 
+def _step(run_dir):
+    return checkpoint.load_state(checkpoint.find(run_dir), {})["step"]
+
+
 def test_a_crash_between_renames_keeps_a_checkpoint_and_the_next_save_recovers(tmp_path):
     checkpoint.save(tmp_path, _Saveable(1), _Saveable("tok"), {"step": 1})
     checkpoint.save(tmp_path, _Saveable(2), _Saveable("tok"), {"step": 2})
-    assert checkpoint.find(tmp_path) == tmp_path / "checkpoint"
+    assert checkpoint.find(tmp_path) == tmp_path / "checkpoint" and _step(tmp_path) == 2
+    assert checkpoint.load_state(tmp_path / "checkpoint-previous", {})["step"] == 1
     # the crash: the current checkpoint was moved aside, the new one never arrived
-    (tmp_path / "checkpoint").rename(tmp_path / ".checkpoint-old")
-    found = checkpoint.find(tmp_path)
-    assert found == tmp_path / ".checkpoint-old"
-    assert checkpoint.load_state(found, {})["step"] == 2
-    # resuming from .checkpoint-old, a second crash just before the new checkpoint's rename must
-    # still leave a checkpoint behind
+    shutil.rmtree(tmp_path / "checkpoint-previous")
+    (tmp_path / "checkpoint").rename(tmp_path / "checkpoint-previous")
+    assert checkpoint.find(tmp_path) == tmp_path / "checkpoint-previous" and _step(tmp_path) == 2
+    # resuming from it, a second crash just before the new checkpoint's rename must still leave
+    # a checkpoint behind
     real_replace = checkpoint.os.replace
 
     def crash_on_final_rename(src, dst):
@@ -40,11 +45,20 @@ def test_a_crash_between_renames_keeps_a_checkpoint_and_the_next_save_recovers(t
         pass
     finally:
         checkpoint.os.replace = real_replace
-    assert checkpoint.load_state(checkpoint.find(tmp_path), {})["step"] == 2
-    # and the next save succeeds and cleans up
+    assert _step(tmp_path) == 2
+    assert [p.name for p in tmp_path.glob(".checkpoint-tmp-*")]   # the killed save's leftover
+    # and the next save succeeds, keeps the one before, and cleans up
     checkpoint.save(tmp_path, _Saveable(3), _Saveable("tok"), {"step": 3})
-    assert checkpoint.load_state(checkpoint.find(tmp_path), {})["step"] == 3
-    assert not (tmp_path / ".checkpoint-old").exists() and not (tmp_path / ".checkpoint-tmp").exists()
+    assert _step(tmp_path) == 3
+    assert checkpoint.load_state(tmp_path / "checkpoint-previous", {})["step"] == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint", "checkpoint-previous"]
+
+
+def test_a_checkpoint_written_before_manifests_still_resumes(tmp_path):
+    legacy = tmp_path / ".checkpoint-old"
+    legacy.mkdir()
+    torch.save({"step": 5}, legacy / checkpoint.STATE_FILE)
+    assert checkpoint.find(tmp_path) == legacy and _step(tmp_path) == 5
 
 
 def test_metrics_log_drops_steps_after_the_checkpoint_and_a_torn_last_line(tmp_path):

@@ -1,8 +1,14 @@
 """SIGKILL a training run at several points (during a checkpoint write among them), resume it,
-and finish with parameters and metrics bitwise equal to an uninterrupted run of the same seed."""
+and finish with parameters and metrics bitwise equal to an uninterrupted run of the same seed.
+Ctrl-C and SIGTERM stop it cleanly instead, with a checkpoint and the command that resumes it
+(issue 14, finding 12)."""
+import os
+import random
+import shlex
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -13,7 +19,7 @@ from course_utils import checkpoint
 
 SCRIPT = Path(__file__).with_name("crash_run.py")
 sys.path.insert(0, str(SCRIPT.parent))
-from crash_run import KILL_POINTS, STEPS  # noqa: E402
+from crash_run import KILL_POINTS, SIGNAL_POINTS, STEPS  # noqa: E402
 
 
 def _run(out: Path, point: str, resume: bool = False) -> subprocess.CompletedProcess:
@@ -44,11 +50,82 @@ def test_a_killed_run_resumes_to_the_same_result(tmp_path, uninterrupted, point)
         assert found is not None and (found / checkpoint.STATE_FILE).exists()
     resumed = _run(tmp_path, "none", resume=True)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert_same_run(uninterrupted, tmp_path)
+
+
+def assert_same_run(uninterrupted: Path, run: Path) -> None:
+    """Same parameters bit for bit, the same metrics, every step logged once, nothing left over."""
     a = load_file(str(uninterrupted / "checkpoint" / "model.safetensors"))
-    b = load_file(str(tmp_path / "checkpoint" / "model.safetensors"))
+    b = load_file(str(run / "checkpoint" / "model.safetensors"))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     ra = checkpoint.MetricsLog(uninterrupted / "metrics.jsonl").read()
-    rb = checkpoint.MetricsLog(tmp_path / "metrics.jsonl").read()
+    rb = checkpoint.MetricsLog(run / "metrics.jsonl").read()
     assert [r["step"] for r in rb] == list(range(1, STEPS + 1))   # none missing, none twice
     assert _strip(ra) == _strip(rb)
-    assert not (tmp_path / ".checkpoint-tmp").exists() and not (tmp_path / ".checkpoint-old").exists()
+    leftovers = [p.name for p in run.iterdir() if p.name.startswith(".") and p.name != ".lock"]
+    assert not leftovers, leftovers
+
+
+@pytest.mark.parametrize("point", SIGNAL_POINTS)
+def test_ctrl_c_and_sigterm_stop_cleanly_and_print_the_command_that_resumes(tmp_path, uninterrupted,
+                                                                            point):
+    stopped = _run(tmp_path, point)
+    sig = signal.SIGTERM if point.startswith("sigterm") else signal.SIGINT
+    assert stopped.returncode == 128 + sig, (stopped.returncode, stopped.stderr[-2000:])
+    assert "Traceback" not in stopped.stderr, stopped.stderr[-2000:]
+    message = stopped.stderr.strip().splitlines()[-1]
+    step = torch.load(checkpoint.find(tmp_path) / checkpoint.STATE_FILE, weights_only=True)["step"]
+    if point.endswith("_1"):   # one signal: step 3 finishes and is saved
+        assert "after step 3 of 6, with a checkpoint saved" in message, message
+        assert step == 3
+    else:                      # a second signal stops at once: the checkpoint of step 2 stands
+        assert "before the step in flight finished" in message, message
+        assert step == 2
+    command = shlex.split(message.split("To continue, run: ", 1)[1])
+    assert command[:3] == ["python", "-m", "course_utils.train"] and command[-1] == "--resume"
+    resumed = subprocess.run([sys.executable] + command[1:], capture_output=True, text=True,
+                             timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert_same_run(uninterrupted, tmp_path)
+
+
+SWEEP_KILLS = 20
+
+
+def test_twenty_kills_at_random_moments_then_a_resume_give_the_uninterrupted_run(tmp_path,
+                                                                                 uninterrupted):
+    """20 SIGKILLs, each at a moment drawn uniformly over an uninterrupted run's duration, so they
+    land in start-up, the evaluations, steps, log appends and checkpoint writes alike. A run
+    directory is resumed after each kill; whenever a resume survives to the end, that run is
+    compared with the uninterrupted one and the next kill goes to a fresh directory. The moments
+    are drawn afresh on every CI run (KILL_SWEEP_SEED replays a draw); the time is bounded by 20
+    of one run's duration plus the resumes that finish."""
+    seed = int(os.environ.get("KILL_SWEEP_SEED") or time.time_ns() % 2 ** 31)
+    rng = random.Random(seed)
+    started = time.perf_counter()
+    _run(tmp_path / "timing", "none")
+    duration = time.perf_counter() - started
+    runs, kills, outcomes = [tmp_path / "run0"], 0, []
+    while kills < SWEEP_KILLS:
+        delay = rng.uniform(0, duration)
+        proc = subprocess.Popen([sys.executable, str(SCRIPT), str(runs[-1]), "none", "--resume"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            proc.wait(timeout=delay)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            kills += 1
+        stderr = proc.communicate()[1]
+        assert proc.returncode in (0, -signal.SIGKILL), (seed, proc.returncode, stderr[-2000:])
+        found = checkpoint.find(runs[-1]) if runs[-1].exists() else None
+        step = torch.load(found / checkpoint.STATE_FILE, weights_only=True)["step"] if found else 0
+        outcomes.append(f"{delay:.1f}s:{'finished' if proc.returncode == 0 else 'killed'}@{step}")
+        if proc.returncode == 0:      # this directory's run is whole: check it, use a new one
+            assert_same_run(uninterrupted, runs[-1])
+            runs.append(tmp_path / f"run{len(runs)}")
+    if runs[-1].exists():
+        resumed = _run(runs[-1], "none", resume=True)
+        assert resumed.returncode == 0, (seed, resumed.stderr[-2000:])
+        assert_same_run(uninterrupted, runs[-1])
+    print(f"kill sweep, KILL_SWEEP_SEED={seed}, one run {duration:.1f} s, {len(runs)} run "
+          f"directories: {' '.join(outcomes)}")

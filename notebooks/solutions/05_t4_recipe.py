@@ -166,10 +166,22 @@ for name, change in [("8-bit AdamW", dict(optimizer="adamw_8bit")), ("LoRA r=16"
 #
 # `resume=True` continues from the run directory's last checkpoint if there is one, and starts
 # fresh otherwise, so **this same cell is the resume cell**: after a disconnect, run the cells
-# above again and then this one. Checkpoints are written atomically every `save_every` steps;
-# the metrics log is append-only and is trimmed back to the checkpoint on resume, so no step is
+# above again and then this one. Checkpoints are written atomically every `save_every` steps,
+# each with a manifest of its files' SHA-256 that is checked before a resume; the one before is
+# kept as `checkpoint-previous` and used, with a message, if the newest does not match. The
+# metrics log is append-only and is trimmed back to the checkpoint on resume, so no step is
 # lost or counted twice. With fp16, a step whose loss or gradients are not finite is skipped and
 # counted (`nonfinite_skipped` in the metrics), never applied.
+#
+# - **The stop button** (Colab's "interrupt execution", Ctrl-C in a terminal) finishes the step
+#   in flight, saves a checkpoint and stops the cell with a message saying so; run the cell
+#   again to continue. A second press stops at once, and the step in flight is redone later.
+# - **Running the cell again** on a finished run returns its summary and changes nothing. A
+#   second copy of the notebook (or a double-clicked cell in another tab) writing to the same
+#   `out_dir` is refused with the id of the process that holds it, so two runs never mix.
+# - **Starting over** is deliberate: `train.train(cfg, overwrite=True)` deletes this run, and a
+#   new `out_dir` keeps it. Without either, a fresh run (`resume=False`) in a directory that holds a
+#   run is refused.
 
 # %%
 summary = train.train(cfg, resume=True)
