@@ -531,7 +531,8 @@ def _open_run(run_dir: Path, cfg: Config, resume: bool, overwrite: bool) -> Path
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     found = checkpoint.find(run_dir)
     if found is None:
-        # only a run that stopped before its first checkpoint may start again from step 0
+        # only a run that stopped before its first checkpoint may start again from step 0 (its
+        # log may hold that step: the record is appended before the checkpoint is written)
         saved_path = run_dir / "config.json"
         saved = json.loads(saved_path.read_text()) if saved_path.exists() else None
         different = checkpoint.config_differences(saved, cfg.to_dict()) if saved else ""
@@ -539,7 +540,7 @@ def _open_run(run_dir: Path, cfg: Config, resume: bool, overwrite: bool) -> Path
         why = ("its config.json is another run's (" + different + ")" if different else
                "it is a finished run" if "after" in summary else
                f"its metrics reach step {last_logged}, past the first checkpoint at step "
-               f"{first_save}" if last_logged >= first_save else "")
+               f"{first_save}" if last_logged > first_save else "")
         if why:
             raise checkpoint.CheckpointError(
                 f"{run_dir} has no checkpoint to resume from, and starting it again would overwrite "

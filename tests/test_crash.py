@@ -31,10 +31,15 @@ def _strip(records):  # wall-clock fields differ run to run; everything else mus
     return [{k: v for k, v in r.items() if "time" not in k and k != "tokens_per_s"} for r in records]
 
 
+DURATION = {}   # the uninterrupted run's wall time, for the kill sweep
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
     out = tmp_path_factory.mktemp("full")
+    started = time.perf_counter()
     proc = _run(out, "none")
+    DURATION["uninterrupted"] = time.perf_counter() - started
     assert proc.returncode == 0, proc.stderr[-2000:]
     return out
 
@@ -98,13 +103,12 @@ def test_twenty_kills_at_random_moments_then_a_resume_give_the_uninterrupted_run
     land in start-up, the evaluations, steps, log appends and checkpoint writes alike. A run
     directory is resumed after each kill; whenever a resume survives to the end, that run is
     compared with the uninterrupted one and the next kill goes to a fresh directory. The moments
-    are drawn afresh on every CI run (KILL_SWEEP_SEED replays a draw); the time is bounded by 20
+    are drawn afresh on every CI run; KILL_SWEEP_SEED replays a draw (the same fractions of the
+    run's duration, so timing noise still moves the moments a little). The time is bounded by 20
     of one run's duration plus the resumes that finish."""
     seed = int(os.environ.get("KILL_SWEEP_SEED") or time.time_ns() % 2 ** 31)
     rng = random.Random(seed)
-    started = time.perf_counter()
-    _run(tmp_path / "timing", "none")
-    duration = time.perf_counter() - started
+    duration = DURATION["uninterrupted"]
     runs, kills, outcomes = [tmp_path / "run0"], 0, []
     while kills < SWEEP_KILLS:
         delay = rng.uniform(0, duration)
