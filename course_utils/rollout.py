@@ -190,7 +190,8 @@ def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tens
     """log pi_theta(o_t | q, o_<t) for every completion token (with autograd), and optionally
     the per-token entropy (differentiable only if ``entropy_grad``: when the entropy is just
     logged, keeping its graph would hold several [N, T, vocab] tensors for nothing). Logits are
-    computed for completion positions only; padding positions get 0.
+    computed for completion positions only. Positions past the longest completion of a row's
+    chunk get 0; padding positions before that hold values that the loss's mask removes.
 
     The same temperature as in sampling is applied, so on-policy the ratio pi_theta / pi_old
     starts at exactly 1 (up to floating-point noise).

@@ -581,7 +581,8 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     summary = json.loads(summary_path.read_text()) if (state and summary_path.exists()) else {}
     if state and state["step"] >= cfg.total_steps and "after" in summary:
         # a re-run cell or command on a finished run: nothing to train, nothing to rewrite
-        print(f"[course_utils] {run_dir} is finished ({summary['steps']} steps): nothing to do")
+        print(f"[course_utils] {run_dir} is finished ({summary.get('steps', state['step'])} steps): "
+              f"nothing to do")
         return summary
     checkpoint.write_json(run_dir / "config.json", cfg.to_dict())
 

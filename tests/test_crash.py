@@ -1,5 +1,6 @@
-"""SIGKILL a training run at several points (during a checkpoint write among them), resume it,
-and finish with parameters and metrics bitwise equal to an uninterrupted run of the same seed.
+"""SIGKILL a training run at the narrow points a clock would rarely hit (mid-line, mid-save,
+between the renames) and at 20 random moments, resume it, and finish with parameters and metrics
+bitwise equal to an uninterrupted run of the same seed.
 Ctrl-C and SIGTERM stop it cleanly instead, with a checkpoint and the command that resumes it
 (issue 14, finding 12)."""
 import os
@@ -48,11 +49,8 @@ def uninterrupted(tmp_path_factory):
 def test_a_killed_run_resumes_to_the_same_result(tmp_path, uninterrupted, point):
     killed = _run(tmp_path, point)
     assert killed.returncode == -signal.SIGKILL, (killed.returncode, killed.stderr[-2000:])
-    found = checkpoint.find(tmp_path)
-    if point == "before_first_checkpoint":
-        assert found is None
-    else:  # whatever the moment, a complete checkpoint survives
-        assert found is not None and (found / checkpoint.STATE_FILE).exists()
+    found = checkpoint.find(tmp_path)   # whatever the moment, a complete checkpoint survives
+    assert found is not None and (found / checkpoint.STATE_FILE).exists()
     resumed = _run(tmp_path, "none", resume=True)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert_same_run(uninterrupted, tmp_path)
