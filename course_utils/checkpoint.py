@@ -97,6 +97,11 @@ TMP_PREFIX = ".checkpoint-tmp-"
 LEGACY = ".checkpoint-old"   # the moved-aside checkpoint of runs written before manifests
 
 
+def damaged_name(name: str) -> str:
+    """Where ``find`` moves a checkpoint directory whose files do not match its manifest."""
+    return name.lstrip(".") + "-damaged"
+
+
 def _sha256(path: Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as f:
@@ -184,7 +189,7 @@ def find(run_dir: Path) -> Path | None:
             if problems:
                 print(f"[course_utils] {'; '.join(problems)}: resuming from {path} instead")
             return path
-        damaged = run_dir / (name.lstrip(".") + "-damaged")
+        damaged = run_dir / damaged_name(name)
         shutil.rmtree(damaged, ignore_errors=True)
         os.replace(path, damaged)
         problems.append(f"the checkpoint in {path} is damaged ({problem}; moved to {damaged.name})")
@@ -218,8 +223,8 @@ def load_state(path: Path, config: dict) -> dict:
 
 # What a run writes into its directory (besides the lock file): --overwrite removes exactly these.
 RUN_FILES = ("config.json", "metrics.jsonl", "summary.json", "report.md", "curves.png")
-CHECKPOINT_DIRS = (CURRENT, PREVIOUS, LEGACY, "checkpoint-damaged", "checkpoint-previous-damaged",
-                   "checkpoint-old-damaged")
+CHECKPOINT_DIRS = (CURRENT, PREVIOUS, LEGACY) + tuple(damaged_name(n)
+                                                      for n in (CURRENT, PREVIOUS, LEGACY))
 
 
 def run_contents(run_dir: Path) -> list[str]:

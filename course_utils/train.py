@@ -507,8 +507,10 @@ def device_memory(cfg: Config) -> tuple[int | None, str]:
         return None, "this machine"
 
 
-def _open_run(run_dir: Path, cfg: Config, resume: bool, overwrite: bool) -> Path | None:
-    """Make ``run_dir`` ready for this invocation and return the checkpoint to resume from.
+def _open_run(run_dir: Path, cfg: Config, resume: bool,
+              overwrite: bool) -> tuple[Path | None, dict | None]:
+    """Make ``run_dir`` ready for this invocation; return the checkpoint to resume from and its
+    trainer state (loaded once here: with the optimizer's moments it is the largest file).
 
     Refuses, rather than guesses, whenever the directory's contents do not fit the request:
     a fresh run over an existing one (without ``overwrite``), or a resume whose checkpoint,
@@ -523,7 +525,7 @@ def _open_run(run_dir: Path, cfg: Config, resume: bool, overwrite: bool) -> Path
                 f"(resume=True), replace it with --overwrite (overwrite=True), or choose another "
                 f"out_dir")
         checkpoint.clear(run_dir)
-        return None
+        return None, None
     log = checkpoint.MetricsLog(run_dir / "metrics.jsonl")
     logged = log.read()
     last_logged = logged[-1]["step"] if logged else 0
@@ -548,8 +550,9 @@ def _open_run(run_dir: Path, cfg: Config, resume: bool, overwrite: bool) -> Path
         if contents:
             print(f"[course_utils] {run_dir} stopped before its first checkpoint: starting it again")
         checkpoint.clear(run_dir)
-        return None
-    step = torch.load(found / checkpoint.STATE_FILE, weights_only=True)["step"]
+        return None, None
+    state = checkpoint.load_state(found, cfg.to_dict())
+    step = state["step"]
     if "before" not in summary:
         raise checkpoint.CheckpointError(
             f"{summary_path} is missing or has no before-training evaluation, so the run's "
@@ -559,7 +562,7 @@ def _open_run(run_dir: Path, cfg: Config, resume: bool, overwrite: bool) -> Path
         raise checkpoint.CheckpointError(
             f"{log.path} ends at step {last_logged} but the checkpoint is at step {step}: steps are "
             f"missing from the log. Restore it, or start over with --overwrite (overwrite=True)")
-    return found
+    return found, state
 
 
 def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progress: bool,
@@ -568,15 +571,16 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     from tqdm.auto import tqdm
 
     if int(os.environ.get("WORLD_SIZE", "1")) == 1:
-        found = _open_run(run_dir, cfg, resume, overwrite)
+        found, state = _open_run(run_dir, cfg, resume, overwrite)
     else:  # accelerate launch: the first process readies run_dir; the others then only look
         from accelerate.state import PartialState
 
-        found = _open_run(run_dir, cfg, resume, overwrite) if os.environ.get("RANK") == "0" else None
+        first = os.environ.get("RANK") == "0"
+        found, state = _open_run(run_dir, cfg, resume, overwrite) if first else (None, None)
         PartialState(cpu=cfg.device == "cpu").wait_for_everyone()
-        if os.environ.get("RANK") != "0" and resume:
+        if not first and resume:
             found = checkpoint.find(run_dir)
-    state = checkpoint.load_state(found, cfg.to_dict()) if found else None
+            state = checkpoint.load_state(found, cfg.to_dict()) if found else None
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if (state and summary_path.exists()) else {}
     if state and state["step"] >= cfg.total_steps and "after" in summary:
