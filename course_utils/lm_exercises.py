@@ -161,7 +161,7 @@ def _check_gradient_reaches_weights(name, model, got, want) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-class _TokenCounter:
+class TokenCounter:
     """Counts the token positions the model is run on (a forward hook on the embeddings): a
     loop with a key/value cache runs each token once; one without reruns the whole sequence."""
 
@@ -171,6 +171,9 @@ class _TokenCounter:
 
     def _count(self, module, inputs, output):
         self.tokens += inputs[0].numel()
+
+    def close(self) -> None:
+        self.handle.remove()
 
 
 def _sample(name, fn, model, prompt_ids, G, max_new, eos, temperature, seed):
@@ -205,12 +208,12 @@ def check_sample_group(fn: Callable) -> None:
         with torch.no_grad():
             model.lm_head.weight[eos] = model.lm_head.weight.mean(0) + 0.15 * model.lm_head.weight.std()
         prompt_ids = torch.randint(3, 32, (1, P), generator=g)
-        counter = _TokenCounter(model)
+        counter = TokenCounter(model)
         try:
             ids, mask, logprobs = _sample(name, fn, model, prompt_ids, G, max_new, eos,
                                           temperature, seed=case)
         finally:
-            counter.handle.remove()
+            counter.close()
         if logprobs.requires_grad or ids.requires_grad:
             raise ExerciseError(f"{name}: sampling built an autograd graph (the log-probs require "
                                 f"grad): run the loop under torch.no_grad(). Sampling is not "

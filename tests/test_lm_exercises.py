@@ -233,3 +233,20 @@ def test_grpo_backward_refuses_no_backward_and_a_wrong_returned_loss():
         check_grpo_backward(no_backward)
     with pytest.raises(ExerciseError, match="return the full-batch loss"):
         check_grpo_backward(lambda *a: backward_by_hand(*a) * 2)
+
+
+def test_sample_group_and_grpo_backward_refuse_answers_that_change_their_inputs():
+    def centring_in_place(model, prompt_ids, prompt_mask, completion_ids, completion_mask,
+                          advantages, *rest):
+        advantages -= advantages.mean()
+        return backward_by_hand(model, prompt_ids, prompt_mask, completion_ids, completion_mask,
+                                advantages, *rest)
+
+    def padding_in_place(model, prompt_ids, *rest):
+        prompt_ids[:, 0] = 0
+        return sample_loop(model, prompt_ids, *rest)
+
+    with pytest.raises(ExerciseError, match="changed its input `advantages` in place"):
+        check_grpo_backward(centring_in_place)
+    with pytest.raises(ExerciseError, match="changed its input `prompt_ids` in place"):
+        check_sample_group(padding_in_place)

@@ -1,4 +1,4 @@
-"""The learner tracks' own arithmetic (the experiments themselves run, shrunk, in lesson 6)."""
+"""The learner tracks' own arithmetic (the experiments themselves run, shrunk, in lesson 7)."""
 import math
 
 import pytest

@@ -168,7 +168,7 @@ assert w[0.05] > w[0.2] > w[0.5] < w[0.8] < w[0.95]
 # passes, has a small group std, and dividing by it scales its rare differences up. Dr. GRPO
 # (arXiv 2503.20783) calls this a question-level difficulty bias. Standardizing over the whole
 # batch instead divides every prompt by the *same* number, so it changes the size of the update,
-# not the balance between prompts; lesson 6 measures all four choices against the exact
+# not the balance between prompts; lesson 7 measures all four choices against the exact
 # gradient of a small multi-prompt problem, and finds the same thing there.
 
 # %% [markdown]
@@ -444,24 +444,12 @@ for m in ("batch_mean", "rloo"):
 #
 # `course_utils.train.grpo_step` is this lesson's loop for a real model: sample $G$ completions
 # per prompt, score them with the rule checker, `group_advantages`, the clipped surrogate with
-# optional k3 KL, aggregation, AdamW with gradient clipping. One engineering idea in it is worth
-# taking to any framework: **share the prompt across its group**. All $G$ completions of a prompt
-# start with the same tokens, so their keys and values are identical. The sampler prefills each
-# prompt once and copies its cache $G$ times; the training forward runs the prompt once, with
-# autograd, and repeats its keys and values for the $G$ completions. The gradient of a repeat is
-# the sum over the copies, so the result is *exactly* the full computation (a test in
-# `tests/test_rollout.py` checks values and gradients), while the prompt's cost is paid once
-# instead of $G$ times: with 128-token prompts and short completions, most of a step's tokens.
-# Two smaller ideas go with it. Completion lengths vary a lot (one rambling completion can be
-# five times longer than the rest), so the sampler drops a row from the batch and the cache as
-# soon as it stops, and the training forward sorts rows by length and runs them in chunks, each
-# cut to its own longest completion. None of this changes a single number the loss sees; it
-# only stops computing padding. `benchmarks/grpo_vs_trl.py` measures the effect against TRL's
-# `GRPOTrainer` on the same work (the README's "Performance" section has the figures).
-#
-# Run the whole recipe on the embedded SmolLM2 with `python -m course_utils.train --preset cpu`
-# (under fifteen minutes on two CPU cores), or open lesson 5 for the Colab T4 version and for
-# why a run can reach a high reward and still fail the rule.
+# optional k3 KL, aggregation, AdamW with gradient clipping. Lesson 5 has you write its
+# language-model side yourself, on the pretrained SmolLM2: the log-probabilities of a completion,
+# a sampling loop with a key/value cache, and the micro-batched backward. It then checks your
+# step against this one and shows where the library's speed comes from. Lesson 6 runs the whole
+# recipe on a Colab T4 and shows why a run can reach a high reward and still fail the rule; the
+# main job, `python -m course_utils.train --preset cpu`, runs it on two CPU cores.
 #
 # ## Check yourself
 #
