@@ -6,7 +6,7 @@ Every arm is the main job (the ``cpu`` preset, same steps, same held-out prompts
 changes its name says; each seed's run is kept in ``runs/ablation/<arm>/seed<s>`` and reused if it finished, so
 an interrupted command picks up where it stopped. It writes ``result.json`` (every number,
 per seed), ``report.md`` (mean ± std over seeds, and each arm against the full recipe) and
-``curves.png``. Lesson 6 renders its section from these files. With ``COURSE_SMOKE=1`` it runs
+``curves.png``. Lesson 7 renders its section from these files. With ``COURSE_SMOKE=1`` it runs
 shrunk on the tiny model in seconds.
 """
 
@@ -87,7 +87,7 @@ def arm_result(run_dir: Path) -> dict:
                 seconds=summary.get("seconds"), steps=len(steps),
                 groups_sampled=sum(r.get("groups_sampled", 0) for r in steps),
                 first_pass_step=first_pass_step(steps),
-                # what passed a two-digit target, if anything did (lesson 6, 6.4 reads it)
+                # what passed a two-digit target, if anything did (lesson 7, 6.4 reads it)
                 two_digit_pass_completions=sorted({
                     x["completion"] for x in after["samples"] if x["target_digit_sum"] > 9 and
                     x["n_chars"] == x["target_chars"] and x["digit_sum"] == x["target_digit_sum"]}),
@@ -128,7 +128,7 @@ def diagnose(run_dir: Path, entropy_floor: float = 0.5) -> dict:
                 pass_digits=after["pass_digits"])
 
 
-# How a single-seed probe of a lever ended, judged on its last 5 steps (lesson 6, 6.3).
+# How a single-seed probe of a lever ended, judged on its last 5 steps (lesson 7, 6.3).
 COLLAPSED = dict(max_distinct_frac=0.25, max_entropy=0.2)   # one sentence for every prompt
 CAP_FILLING = dict(min_truncated_frac=0.9)                  # text cut off at max_new_tokens
 

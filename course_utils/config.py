@@ -277,13 +277,13 @@ PRESETS: dict[str, dict[str, Any]] = {
     # The seed's recipe on a free Colab T4, corrected per the errata (per-prompt groups). Sized
     # by course_utils.plan: micro-batches of 2 prompts x 8 completions keep the peak near 12 GiB
     # of the T4's 15; 10,240 prompts are ~1.3 h at the plan's rate, a 2x margin on its
-    # assumptions inside a 3-hour session (lesson 6 prints the arithmetic). It carries what
-    # lesson 6's ablation kept: the shaped reward (with the binary one, groups that all fail
+    # assumptions inside a 3-hour session (lesson 7 prints the arithmetic). It carries what
+    # lesson 7's ablation kept: the shaped reward (with the binary one, groups that all fail
     # give no gradient at the start). Not DAPO's dynamic sampling: on the main job it changed no
     # seed's result; turn it on (dynamic_sampling=True) if zero_std_frac climbs late in a run.
-    # No entropy bonus: lesson 7 found the seed's inverse-variance bonus did not help, and no
+    # No entropy bonus: lesson 8 found the seed's inverse-variance bonus did not help, and no
     # ablation here supports it. kl_coef 0: a KL term costs a reference forward per step,
-    # lesson 7's KL track found no difference in reward with it, and DAPO drops it; add one
+    # lesson 8's KL track found no difference in reward with it, and DAPO drops it; add one
     # (kl_coef=0.04, DeepSeekMath's) if the model's language degrades.
     "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
                target_chars=64, reward="shaped", prompts_per_step=16,
@@ -297,7 +297,7 @@ PRESETS: dict[str, dict[str, Any]] = {
                          lr=1e-5, precision="bf16", train_prompts=2048, eval_prompts=100,
                          save_every=20, out_dir="runs/gpt2-rtx4070"),
     # The main job: real learning on 2 CPU cores in under 15 minutes, with the embedded SmolLM2
-    # offline. Lesson 6, section 6: plain GRPO on the shaped reward; its ablation found neither
+    # offline. Lesson 7, section 6: plain GRPO on the shaped reward; its ablation found neither
     # the sharp reward nor DAPO's dynamic sampling better on any seed, so neither is here.
     # lr 6e-5 and 24 new tokens (room for 32 characters, about 8 tokens, and cheap first,
     # long completions) are what fit learning into the budget; 60 steps of a 256-prompt epoch

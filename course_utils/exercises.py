@@ -353,7 +353,7 @@ def check_actor_critic_advantage(fn: Callable) -> None:
 
 
 # ----------------------------------------------------------------------------------------------
-# Lesson 4: GRPO
+# Lesson 5: GRPO
 # ----------------------------------------------------------------------------------------------
 
 
@@ -371,7 +371,7 @@ def check_group_advantages(fn: Callable) -> None:
     Any small eps is accepted (TRL uses 1e-4, CS336 1e-6), and so is an exact 0 for a group
     whose rewards are all equal: the checker compares to a relative 1e-3, and its groups'
     stds are far larger than any such eps."""
-    name = "Exercise 4.1 (group-relative advantages)"
+    name = "Exercise 5.1 (group-relative advantages)"
     for case, (groups, G) in enumerate([(3, 4), (4, 3), (3, 8)]):
         g = torch.Generator().manual_seed(41 + case)
         rewards = _group_rewards(g, groups, G)
@@ -397,7 +397,7 @@ def check_group_advantages(fn: Callable) -> None:
 
 def check_clipped_surrogate(fn: Callable) -> None:
     """fn(logp, old_logp, advantages [N], eps_low, eps_high) -> per-token loss [N, T]."""
-    name = "Exercise 4.2 (clipped surrogate)"
+    name = "Exercise 5.2 (clipped surrogate)"
     for case, ((N, T), eps_low, eps_high) in enumerate([((6, 5), 0.2, 0.28), ((4, 3), 0.1, 0.1),
                                                          ((5, 7), 0.3, 0.2)]):
         g = torch.Generator().manual_seed(42 + case)
@@ -433,7 +433,7 @@ def check_clipped_surrogate(fn: Callable) -> None:
 
 def check_k3_kl(fn: Callable) -> None:
     """fn(logp, ref_logp) -> per-token k3 estimate of KL(pi || pi_ref)."""
-    name = "Exercise 4.3 (k3 KL estimate)"
+    name = "Exercise 5.3 (k3 KL estimate)"
     for case, (N, T) in enumerate([(4, 6), (1, 3), (3, 9)]):
         g = torch.Generator().manual_seed(43 + case)
         logp = _leaf(-torch.rand(N, T, generator=g) * 3)
@@ -456,7 +456,7 @@ def check_k3_kl(fn: Callable) -> None:
 
 def check_aggregate(fn: Callable) -> None:
     """fn(per_token [N, T], mask [N, T], loss_type) -> scalar, for "grpo" and "dapo"."""
-    name = "Exercise 4.4 (loss aggregation)"
+    name = "Exercise 5.4 (loss aggregation)"
     for case, (N, T) in enumerate([(3, 4), (5, 6), (2, 9)]):
         g = torch.Generator().manual_seed(44 + case)
         mask = _masks(g, N, T)

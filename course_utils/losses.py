@@ -165,7 +165,9 @@ def k3_kl(logprobs: torch.Tensor, ref_logprobs: torch.Tensor) -> torch.Tensor:
     Always >= 0 (x - log x - 1 >= 0), and unbiased when the token was sampled from pi_theta.
     """
     delta = ref_logprobs - logprobs
-    return torch.exp(delta) - delta - 1
+    # expm1(d) - d, not exp(d) - d - 1: the same value, without the cancellation that makes the
+    # latter slightly negative (about -1e-16) when d is tiny; the clamp catches what rounding is left
+    return (torch.expm1(delta) - delta).clamp(min=0)
 
 
 def token_entropy(logits: torch.Tensor) -> torch.Tensor:

@@ -29,7 +29,7 @@ lists in ``kwargs``, exactly as TRL passes extra dataset columns:
   ``shaped_score``), so a group of different misses always has some spread to learn from.
   It equals 1.0 exactly when ``binary_reward`` does.
 * ``sharp_reward``: 2/3 of the shaped score plus 1/3 of the binary one, so a pass pays clearly
-  more than any near miss (see ``sharp_score``, and lesson 6, section 6, for why).
+  more than any near miss (see ``sharp_score``, and lesson 7, section 6, for why).
 """
 
 from __future__ import annotations
@@ -199,9 +199,9 @@ def sharp_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> 
     large advantage inside its group. With ``shaped_score`` alone, a template two characters
     short keeps 0.97 of the score, and the 0.03 it loses against a pass is small next to the
     spread of the digit credits in a group, so the policy settles two characters short
-    (lesson 6's reward-hacking run).
+    (lesson 7's reward-hacking run).
 
-    Designs that failed in the course's runs, and why (lesson 6, section 6): a bonus for the
+    Designs that failed in the course's runs, and why (lesson 7, section 6): a bonus for the
     exact length alone made the policy lock onto the first 32-character sentence it found,
     whatever its digit sum; a bonus for the exact digit sum made writing the digit alone the
     easiest thing to learn. The score is 1 exactly when ``binary_reward`` is 1.

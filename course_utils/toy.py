@@ -112,7 +112,8 @@ class CharPolicy(nn.Module):
 
 def train_toy(method: str, steps: int = 200, prompts_per_step: int = 16, group_size: int = 8,
               lr: float = 3e-3, seed: int = 0, reward: str = "shaped",
-              eval_every: int = 10) -> dict[str, list[float]]:
+              eval_every: int = 10, updates_per_batch: int = 1, eps_low: float = 0.2,
+              eps_high: float = 0.2) -> dict[str, list[float]]:
     """Train a fresh CharPolicy with one method on the same budget of samples per step.
 
     method: "reinforce" (no baseline), "batch_mean", "rloo" (leave-one-out within the group),
@@ -121,13 +122,23 @@ def train_toy(method: str, steps: int = 200, prompts_per_step: int = 16, group_s
     use the REINFORCE loss summed over tokens. Every method sees prompts_per_step x group_size samples per
     step, so the comparison is on equal terms. Returns the curves: mean training reward and the
     held-out greedy pass rate (both constraints) every ``eval_every`` steps.
+
+    ``updates_per_batch`` > 1 (GRPO only) reuses each batch for several updates, as PPO does:
+    pi_old is then the sampling policy, the ratio moves away from 1 and the clip
+    [1 - eps_low, 1 + eps_high] binds (``eps_low = eps_high = inf`` switches it off). The curves
+    then also hold, per step, the clip fraction (mean over the updates) and the KL from the
+    sampling policy to the updated one (the k3 estimate over the batch's tokens, after the last
+    update).
     """
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     policy = CharPolicy()
     opt = torch.optim.Adam(policy.parameters(), lr=lr)
     held_out = random_prompts(256, torch.Generator().manual_seed(10_000 + seed))
-    history: dict[str, list[float]] = {"step": [], "reward": [], "eval_step": [], "eval_pass": []}
+    if updates_per_batch > 1 and method != "grpo":
+        raise ValueError("updates_per_batch > 1 needs the clipped objective: method='grpo'")
+    history: dict[str, list[float]] = {"step": [], "reward": [], "eval_step": [], "eval_pass": [],
+                                       "clip_fraction": [], "kl_to_sampler": []}
     for step in range(steps):
         prompts = random_prompts(prompts_per_step, gen).repeat_interleave(group_size, 0)
         tokens, mask = policy.sample(prompts, gen)
@@ -142,14 +153,29 @@ def train_toy(method: str, steps: int = 200, prompts_per_step: int = 16, group_s
             weights, _ = losses.group_advantages(r, group_size)
         else:
             raise ValueError(f"unknown method {method!r}")
-        logp, _ = policy.log_probs(prompts, tokens)
-        if method == "grpo":  # the objective of lesson 4, section 1: ratio, clip and 1/|o_i|
-            loss, _ = losses.grpo_loss(logp, logp.detach(), weights, mask, loss_type="grpo")
+        if method == "grpo":  # the objective of lesson 5, section 1: ratio, clip and 1/|o_i|
+            old = None
+            clipped = 0.0
+            for _ in range(updates_per_batch):
+                logp, _ = policy.log_probs(prompts, tokens)
+                old = logp.detach() if old is None else old   # pi_old: the sampling policy
+                loss, stats = losses.grpo_loss(logp, old, weights, mask, loss_type="grpo",
+                                               eps_low=eps_low, eps_high=eps_high)
+                clipped += stats["clip_fraction"] / updates_per_batch
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+            with torch.no_grad():
+                logp, _ = policy.log_probs(prompts, tokens)
+            history["clip_fraction"].append(clipped)
+            # k3 of KL(pi_old || pi_theta) on tokens drawn from pi_old: r - 1 - log r, r = pi/pi_old
+            history["kl_to_sampler"].append(losses.masked_mean(losses.k3_kl(old, logp), mask))
         else:
+            logp, _ = policy.log_probs(prompts, tokens)
             loss = losses.reinforce_loss(logp, weights, mask)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
         history["step"].append(step + 1)
         history["reward"].append(float(r.mean()))
         if (step + 1) % eval_every == 0 or step == 0:

@@ -1,4 +1,4 @@
-"""The learner tracks of lesson 7: each experiment as a function that writes its numbers and
+"""The learner tracks of lesson 8: each experiment as a function that writes its numbers and
 plots to a folder, so the notebook, the command line and a test all run the same code.
 
     python -m course_utils.tracks all --out notebooks/results/tracks        # about 1 hour, 2 cores
@@ -25,7 +25,7 @@ from . import data, models, train
 from .config import load_config, smoke_mode
 
 # The cpu preset as these tracks were run (the shaped reward, no dynamic sampling: the preset
-# before lesson 6's fixes), shortened to 12 steps of 4 prompts x 8 (2-4 minutes a run on 2
+# before lesson 7's fixes), shortened to 12 steps of 4 prompts x 8 (2-4 minutes a run on 2
 # cores). Pinned here, so the stored results stay reproducible whatever the preset becomes.
 SHORT = dict(train_prompts=48, max_steps=None, eval_prompts=32, save_every=12, reward="shaped",
              dynamic_sampling=False, lr=3e-5, max_new_tokens=32)

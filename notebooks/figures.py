@@ -47,7 +47,7 @@ def _z(a: list[float], b: list[float]) -> str:
 
 
 def plan_figures() -> dict[str, str]:
-    """Lesson 6, section 2: the T4 preset's memory and time plan."""
+    """Lesson 7, section 2: the T4 preset's memory and time plan."""
     from course_utils import plan
     from course_utils.config import PRESETS, Config
 
@@ -76,7 +76,7 @@ def plan_figures() -> dict[str, str]:
 
 
 def track_figures() -> dict[str, str]:
-    """Lesson 7: the learner tracks' stored results (``python -m course_utils.tracks all``)."""
+    """Lesson 8: the learner tracks' stored results (``python -m course_utils.tracks all``)."""
     from course_utils.config import PRESETS, Config
 
     base = "tracks/base_model/report.md"
@@ -157,7 +157,7 @@ def track_figures() -> dict[str, str]:
 
 
 def cpu_run_figures() -> dict[str, str]:
-    """Lesson 6, sections 5 and 6: the stored CPU runs' settings."""
+    """Lesson 7, sections 5 and 6: the stored CPU runs' settings."""
     from course_utils.config import Config
 
     shaped = _json("cpu-shaped/config.json")

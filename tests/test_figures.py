@@ -34,17 +34,19 @@ SETUP = {
     "02_reinforce": {"2.1", "2.2", "2.3",                                 # exercise numbers
                      "0.6"},                                              # an illustrative reward level
     "03_baselines": {"3.1", "3.2", "3.3", "16", "128"},                  # exercises; 16 prompts x 8 = 128
-    "04_grpo": {"4.1", "4.2", "4.3", "4.4",                               # exercise numbers
+    "04_trust_regions": {"4.1", "4.2", "4.3", "4.4",                     # exercise numbers
+                         "0.1"},                                          # "a step of 0.1" (illustrative)
+    "05_grpo": {"5.1", "5.2", "5.3", "5.4",                               # exercise numbers
                 "0.01",                                                   # "rewards differ by 0.01 or by 1"
                 "16", "128"},                                             # 16 prompts x 8; 128-token prompts
-    "05_grpo_by_hand": {"5.1", "5.2", "5.3",                             # exercise numbers
+    "06_grpo_by_hand": {"6.1", "6.2", "6.3",                             # exercise numbers
                         "0.7", "1.0", "32"},                              # a question's premise
-    "06_t4_recipe": {"64", "16", "128", "0.01", "1.0", "15%", "25%",      # t4 preset; plan test tolerances
+    "07_t4_recipe": {"64", "16", "128", "0.01", "1.0", "15%", "25%",      # t4 preset; plan test tolerances
                      "32", "12", "24", "15", "0.2", "0.7", "0.95", "0%", "50", "6.3",
                      "6.1", "6.2", "6.4"},
-    "07_learner_tracks": {"32", "10", "4x", "256", "0.05", "0.2", "0.02", "0.04", "40"},
+    "08_learner_tracks": {"32", "10", "4x", "256", "0.05", "0.2", "0.02", "0.04", "40"},
 }
-# Why the lesson 6 and 6 entries are constants: 32 characters / 32-token snippets, digit sums up
+# Why the 07_t4_recipe and 08_learner_tracks entries are constants: 32 characters / 32-token snippets, digit sums up
 # to 12, a 24-token cap, a 15-minute budget, the clip 0.2, temperature 0.7, "mean reward 0.95
 # and pass rate 0%" (a question's premise), the first 50 steps (a T4 checklist item), section
 # numbers; 10 (the fixed digit sum of the base-model track), 4x and 256 levels (8 bits), the entropy

@@ -294,7 +294,7 @@ def test_until_something_passes_sharp_gives_the_advantages_of_shaped():
 
 
 def test_diagnosis_of_the_stored_reward_hacking_run():
-    """lesson 6's table of signs, checked against the stored files read independently."""
+    """lesson 7's table of signs, checked against the stored files read independently."""
     import json
     from pathlib import Path
 
@@ -370,7 +370,7 @@ def test_probes_table_reads_every_stored_probe():
 
 
 def test_the_lessons_reading_of_the_ablation_matches_its_stored_results():
-    """Lesson 6, sections 6.2 and 6.3 state these in words; the stored result.json must bear
+    """Lesson 7, sections 6.2 and 6.3 state these in words; the stored result.json must bear
     them out (and the issue's bar: a 3-seed mean of at least 50% for the main job)."""
     import json
     from pathlib import Path

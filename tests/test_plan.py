@@ -91,7 +91,7 @@ def test_time_plan_by_hand():
 
 
 def test_lora_saves_time_too_it_skips_the_frozen_weights_gradient_matmuls():
-    """Lesson 6 says LoRA saves about a third of the training FLOPs, not only memory: the
+    """Lesson 7 says LoRA saves about a third of the training FLOPs, not only memory: the
     frozen weights need no weight gradient (one of the three matmuls per weight and token),
     while the forward and the gradient flowing down to lower adapters remain. Counted here on
     two small Qwen2 shapes, one training step each."""

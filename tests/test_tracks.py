@@ -1,4 +1,4 @@
-"""The learner tracks' own arithmetic (the experiments themselves run, shrunk, in lesson 7)."""
+"""The learner tracks' own arithmetic (the experiments themselves run, shrunk, in lesson 8)."""
 import math
 
 import pytest

