@@ -241,7 +241,8 @@ def _check_sample_mask(name, ids, mask, eos) -> None:
     if torch.equal(mask.long(), (ids != eos).long()):
         # with pad == EOS this is also the mask that stops just before the first EOS
         raise ExerciseError(f"{name}: the mask is `ids != pad_id`, which drops the real EOS token "
-                            f"(pad == EOS here, as for SmolLM2 and Qwen2.5), so the model would "
+                            f"(pad == EOS here, as for SmolLM2; Qwen2.5 pads with <|endoftext|>, one of "
+                            f"its end tokens), so the model would "
                             f"never be trained to stop. Mask up to and including the first EOS.")
     if bool(mask.all()):
         raise ExerciseError(f"{name}: the mask is 1 everywhere, padding after the first EOS "

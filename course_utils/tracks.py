@@ -1,7 +1,7 @@
 """The learner tracks of lesson 8: each experiment as a function that writes its numbers and
 plots to a folder, so the notebook, the command line and a test all run the same code.
 
-    python -m course_utils.tracks all --out notebooks/results/tracks        # about 1 hour, 2 cores
+    python -m course_utils.tracks all --out notebooks/results/tracks        # about 75 minutes, 2 cores
     python -m course_utils.tracks grouping --seeds 0 1 2
 
 Training runs are the ``cpu`` preset shortened (``SHORT``) and kept in ``runs/tracks/``; a run
@@ -431,8 +431,268 @@ def serving(seeds: list[int], out: Path) -> dict:
     return result
 
 
+# --- track: the policy gradient of a retrieval-augmented policy -------------------------------
+
+def _two_stage(success: list[float]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A uniform retriever over len(success) documents, a generator that answers right (y = 0,
+    reward 1) with probability success[d] given document d, else wrong (y = 1, reward 0)."""
+    p = torch.tensor(success, dtype=torch.float64)
+    theta = torch.stack([p.log(), (1 - p).log()], -1)
+    return torch.zeros(len(success), dtype=torch.float64), theta, torch.tensor([1.0, 0.0], dtype=torch.float64)
+
+
+def exact_retrieval(batches: int = 20_000, group: int = 8, seed: int = 0) -> dict:
+    """The decomposition against autograd on random problems, then bias and noise of each part
+    under four baselines and of the cross-document estimator, then the retriever's
+    signal-to-noise ratio against the number of documents and the generator's quality."""
+    from . import retrieval
+
+    gen = torch.Generator().manual_seed(seed)
+    split_error = 0.0
+    for _ in range(5):   # random problems: K documents, Y answers, any rewards
+        K, Y = int(torch.randint(2, 7, (1,), generator=gen)), int(torch.randint(2, 6, (1,), generator=gen))
+        phi, theta = torch.randn(K, generator=gen, dtype=torch.float64), torch.randn(K, Y, generator=gen, dtype=torch.float64)
+        reward = torch.rand(Y, generator=gen, dtype=torch.float64)
+        parts, exact = retrieval.score_function_parts(phi, theta, reward), retrieval.exact_gradients(phi, theta, reward)
+        split_error = max(split_error, *(float((a - b).abs().max()) for a, b in zip(parts, exact)))
+
+    success = [0.8, 0.5, 0.3, 0.1]
+    phi, theta, reward = _two_stage(success)
+    d, y = retrieval.sample(phi, theta, batches, group, gen)
+    exact_phi, exact_theta = retrieval.exact_gradients(phi, theta, reward)
+    rows = {}
+    for kind in retrieval.BASELINES:
+        g_phi, g_theta = retrieval.estimates(phi, theta, reward, d, y, kind)
+        rows[kind] = dict(retriever=retrieval.summarize(g_phi, exact_phi),
+                          generator=retrieval.summarize(g_theta, exact_theta))
+    rows["cross-document (retriever only)"] = dict(retriever=retrieval.summarize(
+        retrieval.cross_document_retriever_estimate(phi, theta, reward, d, y), exact_phi))
+
+    snr = {}
+    for K in (2, 4, 8, 16):
+        for good in (0.3, 0.5, 0.8):
+            phi_k, theta_k, reward_k = _two_stage([good] + [0.2] * (K - 1))
+            dk, yk = retrieval.sample(phi_k, theta_k, batches // 4, group, gen)
+            exact_k, _ = retrieval.exact_gradients(phi_k, theta_k, reward_k)
+            loo, _ = retrieval.estimates(phi_k, theta_k, reward_k, dk, yk, "leave-one-out")
+            cross = retrieval.cross_document_retriever_estimate(phi_k, theta_k, reward_k, dk, yk)
+            snr[f"K={K}, success {good} vs 0.2"] = dict(
+                K=K, good=good, leave_one_out=retrieval.summarize(loo, exact_k)["snr"],
+                cross_document=retrieval.summarize(cross, exact_k)["snr"])
+    return dict(split_error=split_error, success=success, group=group, batches=batches,
+                baselines=rows, snr=snr)
+
+
+def retrieval_report(exact: dict) -> str:
+    lines = ["| baseline | retriever: bias (± SE) | retriever: noise | generator: bias (± SE) | generator: noise |",
+             "|---|---|---|---|---|"]
+    for kind, row in exact["baselines"].items():
+        r, g = row["retriever"], row.get("generator")
+        gen_cells = f"{g['bias']:.3f} (± {g['bias_se']:.3f}) | {g['noise']:.2f}" if g else "n/a | n/a"
+        lines.append(f"| {kind} | {r['bias']:.3f} (± {r['bias_se']:.3f}) | {r['noise']:.2f} | {gen_cells} |")
+    snr = ["| documents K | generator: success with the helpful document vs the others | "
+           "retriever SNR, leave-one-out | retriever SNR, cross-document |", "|---|---|---|---|"]
+    for row in exact["snr"].values():
+        snr.append(f"| {row['K']} | {row['good']} vs 0.2 | {row['leave_one_out']:.2f} | {row['cross_document']:.2f} |")
+    success = ", ".join(f"{p}" for p in exact["success"])
+    return (f"**The decomposition.** On 5 random two-stage problems, the retriever's and the generator's "
+            f"parts of E[R grad log pi(d, y)] equal autograd's grad_phi J and grad_theta J to "
+            f"{exact['split_error']:.1e} (float64).\n\n"
+            f"**Baselines** ({exact['batches']:,} groups of {exact['group']} rollouts; a uniform retriever over "
+            f"4 documents, with which the generator answers right with probability {success}). Bias and "
+            f"noise are relative to the exact gradient's norm; the bias's standard error is the Monte "
+            f"Carlo floor.\n\n" + "\n".join(lines) +
+            f"\n\n**The retriever's signal** (one group of {exact['group']} rollouts, signal-to-noise ratio "
+            f"= |exact| / spread of one estimate; one helpful document, the others 0.2):\n\n" + "\n".join(snr) + "\n")
+
+
+# The documents of the real run, by kind. The retriever chooses a kind; the document itself is
+# built for the prompt (its example reply meets that prompt's targets).
+DOCUMENTS = ("an example reply that passes", "an example reply of the wrong length",
+             "an unrelated sentence", "the rule restated")
+
+
+def valid_reply(target_chars: int, target_digit_sum: int) -> str:
+    """A reply the checker passes: the digits that make up the target sum, in a sentence cut to
+    the target length (its last character is never a space, which would be stripped)."""
+    digits = "9" * (target_digit_sum // 9) + (str(target_digit_sum % 9) if target_digit_sum % 9 else "")
+    text = f"Only {digits} more stops along the harbor path before dusk"[:target_chars]
+    return text[:-1] + "s" if text.endswith(" ") else text
+
+
+def document(prompt: data.Prompt, kind: int) -> str:
+    reply = valid_reply(prompt.target_chars, prompt.target_digit_sum)
+    return [f"An example of a reply that follows the rule: {reply}",
+            f"An example of a reply: {reply} and a few more words after it",
+            "Tide tables for the harbor are printed every week in the local paper.",
+            "Count every character of the reply, spaces included, and add up its digits."][kind]
+
+
+def with_document(tokenizer, prompt: data.Prompt, kind: int) -> str:
+    """The prompt's instruction with the retrieved document after it, in the chat template."""
+    content = (data.instruction(prompt.snippet, prompt.target_chars, prompt.target_digit_sum) +
+               f"\n\nA note that may help: {document(prompt, kind)}")
+    return tokenizer.apply_chat_template([{"role": "user", "content": content}], tokenize=False,
+                                         add_generation_prompt=True)
+
+
+def retrieval_config(seed: int):
+    """The cpu preset with 2 prompts per step and the main job's 24 new tokens (shrunk in smoke)."""
+    return load_config("cpu", seed=seed, **{"prompts_per_step": 2, "max_new_tokens": 24,
+                                           **(SMOKE if smoke_mode() else {})})
+
+
+def retrieval_run(seed: int, learn_retriever: bool, steps: int) -> dict:
+    """GRPO on SmolLM2 with a retriever over the document kinds, trained jointly (one advantage,
+    each part its own score) or frozen at uniform. Returns the per-step curves."""
+    from . import losses, rollout
+
+    cfg = retrieval_config(seed)
+    tokenizer = models.load_tokenizer(cfg.model)
+    torch.manual_seed(seed)
+    model = models.load_policy(cfg.model, seed=seed)
+    eos = models.eos_token_ids(model, tokenizer)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    phi = torch.zeros(len(DOCUMENTS), requires_grad=True)      # the retriever's logits
+    phi_optimizer = torch.optim.Adam([phi], lr=0.2)
+    prompts = data.make_prompts(cfg, tokenizer, held_out=False)
+    gen = torch.Generator().manual_seed(seed)
+    G = cfg.group_size
+    curves = {"reward": [], "p_documents": [], "seconds": [], "retriever_seconds": []}
+    reward_by_document = [[0.0, 0] for _ in DOCUMENTS]
+    for step in range(steps):
+        start = time.perf_counter()
+        batch = train.batch_for_step(step, prompts, cfg)
+        kinds = torch.multinomial(phi.detach().softmax(-1).expand(len(batch), -1), G,
+                                  replacement=True, generator=gen)           # [B, G]
+        texts = [with_document(tokenizer, p, int(k)) for p, row in zip(batch, kinds) for k in row]
+        ro = rollout.rollout(model, tokenizer, texts, group_size=1, max_new_tokens=cfg.max_new_tokens,
+                             eos_ids=eos, temperature=cfg.temperature, generator=gen)
+        r = train.score([p for p in batch for _ in range(G)], ro.texts, cfg.reward)["rewards"]
+        # one baseline per prompt, over its G rollouts whatever document each retrieved: it does
+        # not depend on the sampled document, so the retriever's part stays unbiased
+        advantages, _ = losses.group_advantages(r, G)
+        optimizer.zero_grad(set_to_none=True)
+        logprobs, _ = rollout.completion_logprobs(model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
+                                                  ro.completion_mask, temperature=cfg.temperature)
+        loss, _ = losses.grpo_loss(logprobs, logprobs.detach(), advantages, ro.completion_mask)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+        optimizer.step()
+        retriever_start = time.perf_counter()
+        if learn_retriever:   # the same advantages, the retriever's own score: grad log pi_phi(d)
+            phi_optimizer.zero_grad()
+            (-(advantages.view(kinds.shape) * phi.log_softmax(-1)[kinds]).mean()).backward()
+            phi_optimizer.step()
+        end = time.perf_counter()
+        for k, value in zip(kinds.flatten().tolist(), r.tolist()):
+            reward_by_document[k][0] += value
+            reward_by_document[k][1] += 1
+        curves["reward"].append(float(r.mean()))
+        curves["p_documents"].append(phi.detach().softmax(-1).tolist())
+        curves["seconds"].append(end - start)
+        curves["retriever_seconds"].append(end - retriever_start)
+    curves["reward_by_document"] = [total / n if n else None for total, n in reward_by_document]
+    curves["cross_document_ess"] = _cross_document_ess(model, tokenizer, cfg, batch, ro, phi.detach())
+    return curves
+
+
+@torch.no_grad()
+def _cross_document_ess(model, tokenizer, cfg, batch, ro, phi) -> list[float]:
+    """Could the last batch's answers update the retriever for every document, without new
+    generation? Score each answer under each document (one forward pass per document) and
+    return, per document, the effective sample size of the weights pi(y | d') / m(y), m the
+    mixture over documents the answers were drawn from, as a fraction of the batch."""
+    from . import rollout
+
+    G = cfg.group_size
+    scores = []
+    for kind in range(len(DOCUMENTS)):
+        texts = [with_document(tokenizer, p, kind) for p in batch for _ in range(G)]
+        prompt_ids, prompt_mask = rollout.tokenize_prompts(tokenizer, texts, ro.completion_ids.device)
+        logprobs, _ = rollout.completion_logprobs(model, prompt_ids, prompt_mask, ro.completion_ids,
+                                                  ro.completion_mask, temperature=cfg.temperature)
+        scores.append((logprobs * ro.completion_mask).sum(-1))
+    log_p = torch.stack(scores, -1)                                        # [N, K]
+    log_mixture = torch.logsumexp(log_p + phi.log_softmax(-1), -1, keepdim=True)
+    w = (log_p - log_mixture).exp()
+    return (w.sum(0) ** 2 / (len(w) * (w ** 2).sum(0))).tolist()
+
+
+def retrieval(seeds: list[int], out: Path) -> dict:
+    """The exact analysis, then the real run: joint retriever + generator against the generator
+    alone with a uniform retriever, over seeds."""
+    exact = exact_retrieval(batches=2_000 if smoke_mode() else 20_000)
+    steps = 2 if smoke_mode() else 8
+    arms = {"joint (retriever learns)": True, "generator only (uniform retriever)": False}
+    runs = {}
+    for arm, learn in arms.items():
+        runs[arm] = []
+        for seed in seeds:
+            cache = RUNS / ("smoke" if smoke_mode() else "full") / "retrieval" / ("joint" if learn else "generator") / f"seed{seed}.json"
+            if not cache.exists():
+                cache.parent.mkdir(parents=True, exist_ok=True)
+                cache.write_text(json.dumps(retrieval_run(seed, learn, steps)))
+            runs[arm].append(json.loads(cache.read_text()))
+    cfg = retrieval_config(seeds[0])
+    last = min(3, steps)
+    final = {arm: [statistics.mean(r["reward"][-last:]) for r in rs] for arm, rs in runs.items()}
+    helpful = {arm: [r["p_documents"][-1][0] for r in rs] for arm, rs in runs.items()}
+    seconds = {arm: [statistics.mean(r["seconds"]) for r in rs] for arm, rs in runs.items()}
+    joint, alone = arms
+    ess = [statistics.mean(r["cross_document_ess"]) for rs in runs.values() for r in rs]
+    by_document = [statistics.mean(r["reward_by_document"][k] for rs in runs.values() for r in rs
+                                   if r["reward_by_document"][k] is not None) for k in range(len(DOCUMENTS))]
+    _plot_retrieval(runs, out / "curves.png")
+    rows = "\n".join(f"| {arm} | {mean_std(final[arm])} | {mean_std(helpful[arm])} | {mean_std(seconds[arm])} |"
+                      for arm in arms)
+    docs = "\n".join(f"| {name} | {value:.3f} |" for name, value in zip(DOCUMENTS, by_document))
+    report = (retrieval_report(exact) +
+              f"\n**Real runs** ({cfg.model}, {steps} GRPO steps of {cfg.prompts_per_step} prompts x "
+              f"{cfg.group_size} rollouts, each rollout "
+              f"with the document its retriever drew; {len(seeds)} seeds):\n\n"
+              f"| arm | training reward, last {last} steps | P(retriever picks the passing example) at the end | seconds per step |\n"
+              f"|---|---|---|---|\n{rows}\n\n"
+              f"joint vs generator only, reward: {differs(final[joint], final[alone])}; "
+              f"P(passing example): {differs(helpful[joint], helpful[alone])}; "
+              f"the retriever's update took {statistics.mean(s for r in runs[joint] for s in r['retriever_seconds']) * 1000:.1f} ms a step\n\n"
+              f"Reusing answers across documents on the real model: scored under every document, the "
+              f"last batch's answers give cross-document weights whose effective sample size is "
+              f"{mean_std(ess)} of the batch (mean over documents, per run)\n\n"
+              f"Mean reward of the rollouts by the document they retrieved (all runs pooled):\n\n"
+              f"| document | mean reward |\n|---|---|\n{docs}\n")
+    result = dict(exact=exact, steps=steps, final_reward=final, p_helpful=helpful,
+                  seconds_per_step=seconds, reward_by_document=dict(zip(DOCUMENTS, by_document)),
+                  cross_document_ess=ess,
+                  retriever_ms=1000 * statistics.mean(s for r in runs[joint] for s in r["retriever_seconds"]),
+                  documents=list(DOCUMENTS))
+    write(out, report, result)
+    return result
+
+
+def _plot_retrieval(runs: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.0))
+    for arm, rs in runs.items():
+        steps = range(1, len(rs[0]["reward"]) + 1)
+        reward = torch.tensor([r["reward"] for r in rs])
+        helpful = torch.tensor([[p[0] for p in r["p_documents"]] for r in rs])
+        for ax, values in zip(axes, (reward, helpful)):
+            ax.plot(steps, values.mean(0), label=arm)
+            ax.fill_between(steps, values.min(0).values, values.max(0).values, alpha=0.15)
+    axes[0].set_title("training reward"); axes[1].set_title("P(passing example)")
+    for ax in axes:
+        ax.set_xlabel("step")
+    axes[0].legend(fontsize=7); plt.tight_layout(); fig.savefig(path, dpi=110); plt.close(fig)
+
+
 TRACKS = {"base_model": base_model, "serving": serving, "entropy": entropy, "kl": kl_schedule,
-          "grouping": grouping}
+          "grouping": grouping, "retrieval": retrieval}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -153,6 +153,39 @@ def track_figures() -> dict[str, str]:
         "grouping.final_batch": _mean_std(g_final["whole batch (the seed)"], ".3f"),
         "grouping.final_group": _mean_std(g_final["per-prompt groups (GRPO)"], ".3f"),
         "grouping.z": _z(g_final["whole batch (the seed)"], g_final["per-prompt groups (GRPO)"]),
+        **retrieval_figures(),
+    }
+
+
+def retrieval_figures() -> dict[str, str]:
+    """Lesson 8, section 6: the retrieval track (``python -m course_utils.tracks retrieval``)."""
+    r = _json("tracks/retrieval/result.json")
+    ex, snr = r["exact"], r["exact"]["snr"]
+    rows = ex["baselines"]
+    joint, alone = "joint (retriever learns)", "generator only (uniform retriever)"
+    by_document = r["reward_by_document"].values()
+    return {
+        "retrieval.batches": f"{ex['batches']:,}",
+        "retrieval.split_error": f"{ex['split_error']:.0e}",
+        "retrieval.bias_group": f"{rows['group mean']['retriever']['bias']:.3f}",
+        "retrieval.bias_per_document": f"{rows['per-document mean']['retriever']['bias']:.2f}",
+        "retrieval.noise_loo": f"{rows['leave-one-out']['retriever']['noise']:.2f}",
+        "retrieval.noise_cross": f"{rows['cross-document (retriever only)']['retriever']['noise']:.2f}",
+        "retrieval.snr_k2": f"{snr['K=2, success 0.8 vs 0.2']['leave_one_out']:.2f}",
+        "retrieval.snr_k16": f"{snr['K=16, success 0.8 vs 0.2']['leave_one_out']:.2f}",
+        "retrieval.snr_k4_weak": f"{snr['K=4, success 0.3 vs 0.2']['leave_one_out']:.2f}",
+        "retrieval.snr_cross_k16": f"{snr['K=16, success 0.8 vs 0.2']['cross_document']:.2f}",
+        "retrieval.steps": f"{r['steps']}",
+        "retrieval.p_joint": _mean_std(r["p_helpful"][joint], ".2f"),
+        "retrieval.p_uniform": f"{1 / len(r['documents']):.2f}",
+        "retrieval.z_p": _z(r["p_helpful"][joint], r["p_helpful"][alone]),
+        "retrieval.final_joint": _mean_std(r["final_reward"][joint], ".3f"),
+        "retrieval.final_alone": _mean_std(r["final_reward"][alone], ".3f"),
+        "retrieval.z_reward": _z(r["final_reward"][joint], r["final_reward"][alone]),
+        "retrieval.document_rewards": f"{min(by_document):.3f} to {max(by_document):.3f}",
+        "retrieval.ess": _mean_std(r["cross_document_ess"], ".2f"),
+        "retrieval.retriever_ms": f"{r['retriever_ms']:.1f} ms",
+        "retrieval.step_s": f"{statistics.mean(r['seconds_per_step'][joint]):.0f} s",
     }
 
 

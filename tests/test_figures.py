@@ -44,7 +44,8 @@ SETUP = {
     "07_t4_recipe": {"64", "16", "128", "0.01", "1.0", "15%", "25%",      # t4 preset; plan test tolerances
                      "32", "12", "24", "15", "0.2", "0.7", "0.95", "0%", "50", "6.3",
                      "6.1", "6.2", "6.4"},
-    "08_learner_tracks": {"32", "10", "4x", "256", "0.05", "0.2", "0.02", "0.04", "40"},
+    "08_learner_tracks": {"32", "10", "4x", "256", "0.05", "0.2", "0.02", "0.04", "40",
+                          "16", "0.8", "24"},   # the retrieval track's 16 documents, 0.8 vs 0.2 success, 24 new tokens
 }
 # Why the 07_t4_recipe and 08_learner_tracks entries are constants: 32 characters / 32-token snippets, digit sums up
 # to 12, a 24-token cap, a 15-minute budget, the clip 0.2, temperature 0.7, "mean reward 0.95

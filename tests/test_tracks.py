@@ -36,3 +36,54 @@ def test_steps_to_threshold_uses_the_moving_average(tmp_path):
     assert tracks.steps_to(tmp_path, "reward_mean", 0.6, smooth=3) == 4
     assert tracks.steps_to(tmp_path, "reward_mean", 0.61, smooth=3) == 6
     assert math.isinf(tracks.steps_to(tmp_path, "reward_mean", 0.95))
+
+
+# --- the retrieval track ---------------------------------------------------------------------
+
+def test_the_score_function_splits_into_the_retriever_s_and_the_generator_s_gradient():
+    import torch
+
+    from course_utils import retrieval
+
+    g = torch.Generator().manual_seed(0)
+    for K, Y in ((2, 2), (3, 5), (6, 3)):
+        phi, theta = torch.randn(K, generator=g, dtype=torch.float64), torch.randn(K, Y, generator=g, dtype=torch.float64)
+        reward = torch.rand(Y, generator=g, dtype=torch.float64)
+        for part, exact in zip(retrieval.score_function_parts(phi, theta, reward),
+                               retrieval.exact_gradients(phi, theta, reward)):
+            assert torch.allclose(part, exact, atol=1e-14)
+
+
+def test_baselines_what_each_part_may_subtract():
+    """Group mean: both parts shrink by (G-1)/G (lesson 3). Leave-one-out: unbiased. A
+    per-document mean: the generator's part stays unbiased, the retriever's loses its signal.
+    The cross-document estimate: unbiased, and less noisy than leave-one-out."""
+    result = tracks.exact_retrieval(batches=20_000, group=8, seed=1)
+    rows = result["baselines"]
+    assert result["split_error"] < 1e-14
+    for part in ("retriever", "generator"):
+        assert rows["group mean"][part]["bias"] == pytest.approx(1 / 8, abs=4 * rows["group mean"][part]["bias_se"])
+        assert rows["leave-one-out"][part]["bias"] < 4 * rows["leave-one-out"][part]["bias_se"]
+    assert rows["per-document mean"]["generator"]["bias"] < 4 * rows["per-document mean"]["generator"]["bias_se"]
+    assert rows["per-document mean"]["retriever"]["bias"] > 0.5
+    cross = rows["cross-document (retriever only)"]["retriever"]
+    assert cross["bias"] < 4 * cross["bias_se"]
+    assert cross["noise"] < rows["leave-one-out"]["retriever"]["noise"]
+
+
+def test_the_per_document_baseline_leaves_out_the_rollout_itself():
+    import torch
+
+    from course_utils import retrieval
+
+    r = torch.tensor([[1.0, 0.0, 1.0, 0.5]])
+    d = torch.tensor([[0, 0, 1, 0]])
+    # rollout 0: the others with document 0 are rollouts 1 and 3; rollout 2 is alone (baseline 0)
+    assert retrieval.baseline_values(r, d, 2, "per-document mean").tolist() == [[0.25, 0.75, 0.0, 0.5]]
+
+
+@pytest.mark.parametrize("target_chars", [20, 32, 48])
+def test_the_passing_example_document_passes_the_checker_for_every_target(target_chars):
+    for digit_sum in range(0, 19):
+        reply = tracks.valid_reply(target_chars, digit_sum)
+        assert tracks.train.rewards.check(reply, target_chars, digit_sum).passed, (reply, digit_sum)

@@ -28,7 +28,7 @@
 #
 # The answers are the geometry of the policy and importance sampling. Measure steps by how much
 # they change the *distribution*, the KL divergence, whose local form is the Fisher information
-# matrix. That gives the natural gradient (Amari 1998; Kakade 2001; Peters and Schaal 2008) and
+# matrix. That gives the natural gradient (Amari 1998; Kakade 2001; Peters and Schaal 2006, 2008) and
 # TRPO's KL-constrained step (Schulman et al. 2015). Reweight old samples by the ratio of the new
 # policy to the old, and see that for whole sequences these weights explode. PPO's clipped
 # per-token surrogate (Schulman et al. 2017) is the cheap, local answer to both, and GRPO keeps it.
@@ -293,9 +293,10 @@ for label, theta in (("spread out", torch.tensor([0.3, -0.2, 0.1, 0.4])), ("near
 # promises a small KL for a step that is not small at all. TRPO therefore shrinks the step by a
 # line search until the true KL (estimated on samples) is within bounds and the objective
 # improved. For a language model the step is also expensive: $F$ has one row per parameter, so
-# TRPO never forms it and solves $F x = g$ by conjugate gradients, with one extra backward pass
-# per Fisher-vector product. PPO, and GRPO after it, keep the idea (do not move the policy far
-# from the one that sampled the data) and drop the machinery. Section 5 shows how.
+# TRPO never forms it and solves $F x = g$ by conjugate gradients, each iteration a
+# Fisher-vector product that costs about one more backward pass. PPO, and GRPO after it, keep
+# the idea (do not move the policy far from the one that sampled the data) and drop the
+# machinery. Section 5 shows how.
 #
 # ## 4. Reusing samples: importance sampling
 #

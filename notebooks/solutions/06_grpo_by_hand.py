@@ -37,8 +37,9 @@
 #   library's speed comes from: sharing the prompt across its group and dropping finished rows.
 #
 # **Exercises**: 6.1 completion log-probabilities, 6.2 sampling a group, 6.3 the micro-batched
-# GRPO backward. Each checker runs your function on small random Qwen2 models (the architecture
-# of Qwen2.5 and, up to sizes, of SmolLM2) against the library, and names the mistake it finds.
+# GRPO backward. Each checker runs your function on small random Qwen2 models (Qwen2.5's
+# architecture; SmolLM2 is a Llama, the same design without biases in the attention
+# projections) against the library, and names the mistake it finds.
 #
 # Runtime: the full run trains SmolLM2 with real weights on the CPU, in minutes (the last cell
 # prints how many); a GPU is used if there is one. In smoke mode (CI) a tiny random model stands
@@ -131,7 +132,7 @@ print("\nOne prompt, as the model sees it:\n" + train_prompts[0].text)
 #   ends where its completion starts. The attention mask keeps real tokens from attending to the
 #   padding, and the **position ids** must start at 0 on each row's first real token:
 #   `attention_mask.cumsum(-1) - 1`, clamped at 0. (The transformers version pinned here derives
-#   them from the mask when you omit them; older versions and other models do not, so pass them.)
+#   them from the mask when you omit them; older versions did not, so pass them.)
 # - **The completion mask.** Completions are right-padded after their end-of-sequence token.
 #   Those positions are not part of the completion and must get log-probability 0.
 #
@@ -180,8 +181,8 @@ exercises.check_completion_logprobs(completion_logprobs)
 #
 # - **No gradient.** Sampling is not differentiated. Without `torch.no_grad()` every decoding
 #   step's graph is kept until the step ends: memory grows with the completion length for nothing.
-# - **EOS when pad == EOS.** SmolLM2 and Qwen2.5 pad with their end-of-sequence token (the cell
-#   in section 1 printed the ids). Once a row has produced EOS, the loop keeps feeding it EOS as
+# - **EOS when pad == EOS.** SmolLM2 pads with its end-of-sequence token (the cell in section 1
+#   printed the ids), and Qwen2.5-Instruct with `<|endoftext|>`, one of its two end tokens. Once a row has produced EOS, the loop keeps feeding it EOS as
 #   padding. The mask must keep the *first* EOS, because that token is the model's decision to
 #   stop, and a policy that is never rewarded for stopping never learns to. `ids != pad_id`
 #   drops it.
