@@ -641,6 +641,7 @@ def retrieval(seeds: list[int], out: Path) -> dict:
     seconds = {arm: [statistics.mean(r["seconds"]) for r in rs] for arm, rs in runs.items()}
     joint, alone = arms
     ess = [statistics.mean(r["cross_document_ess"]) for rs in runs.values() for r in rs]
+    retriever_ms = 1000 * statistics.mean(s for r in runs[joint] for s in r["retriever_seconds"])
     by_document = [statistics.mean(r["reward_by_document"][k] for rs in runs.values() for r in rs
                                    if r["reward_by_document"][k] is not None) for k in range(len(DOCUMENTS))]
     _plot_retrieval(runs, out / "curves.png")
@@ -655,7 +656,7 @@ def retrieval(seeds: list[int], out: Path) -> dict:
               f"|---|---|---|---|\n{rows}\n\n"
               f"joint vs generator only, reward: {differs(final[joint], final[alone])}; "
               f"P(passing example): {differs(helpful[joint], helpful[alone])}; "
-              f"the retriever's update took {statistics.mean(s for r in runs[joint] for s in r['retriever_seconds']) * 1000:.1f} ms a step\n\n"
+              f"the retriever's update took {retriever_ms:.1f} ms a step\n\n"
               f"Reusing answers across documents on the real model: scored under every document, the "
               f"last batch's answers give cross-document weights whose effective sample size is "
               f"{mean_std(ess)} of the batch (mean over documents, per run)\n\n"
@@ -664,7 +665,7 @@ def retrieval(seeds: list[int], out: Path) -> dict:
     result = dict(exact=exact, steps=steps, final_reward=final, p_helpful=helpful,
                   seconds_per_step=seconds, reward_by_document=dict(zip(DOCUMENTS, by_document)),
                   cross_document_ess=ess,
-                  retriever_ms=1000 * statistics.mean(s for r in runs[joint] for s in r["retriever_seconds"]),
+                  retriever_ms=retriever_ms,
                   documents=list(DOCUMENTS))
     write(out, report, result)
     return result
