@@ -112,7 +112,15 @@ class Config:
                                         "finite when every reward in the batch is equal")
     # --- engineering ---------------------------------------------------------------------------
     precision: str = _f("fp32", "fp32 everywhere, or fp16/bf16 autocast with fp32 master weights "
-                                "(fp16 uses a gradient scaler; it needs a GPU)", ("fp32", "fp16", "bf16"))
+                                "(fp16 uses a gradient scaler; it needs a GPU); 'auto': bf16 on a CPU "
+                                "with bf16 matrix units (AMX, AVX512-BF16), else fp32 (course_utils.cpu)",
+                        ("fp32", "fp16", "bf16", "auto"))
+    kernels: str = _f("reference", "'fast': tokens drawn by inverting the CDF, the output layer applied "
+                                   "only at completion tokens, 32 rows per training chunk, fused AdamW on a "
+                                   "CPU (the same distributions and gradients up to rounding, faster: "
+                                   "benchmarks/RESULTS.md); 'reference': the computation every run stored in "
+                                   "notebooks/results was made with, so those reproduce bitwise",
+                      ("reference", "fast"))
     device: str = _f("auto", "'auto': a GPU if there is one (accelerate's choice: CUDA, or MPS on "
                              "Apple Silicon); 'cpu': always the CPU, so a CPU run is the same "
                              "run on every machine", ("auto", "cpu"))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from .logprobs import body_and_head, output_layer_logprobs
 from .losses import token_entropy
 
 
@@ -86,6 +87,20 @@ def completion_mask(completion_ids: torch.Tensor, eos_ids: list[int]) -> torch.T
     return (positions.unsqueeze(0) <= first_eos.unsqueeze(-1)).long()
 
 
+def draw(probs: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """One token per row of ``probs`` [n, V], drawn exactly from it by inverting the CDF: token k
+    is chosen when u * total falls in [cdf[k-1], cdf[k]), which happens with probability
+    probs[k] / total (a token of probability 0 has an empty interval and is never drawn).
+
+    One uniform number per row instead of ``torch.multinomial``'s V exponential draws: on the
+    49,152-token vocabulary that is most of a decoding step's sampling time
+    (benchmarks/kernels.py, in RESULTS.md)."""
+    cdf = probs.cumsum(-1)
+    u = torch.rand(probs.shape[0], 1, generator=generator, device=probs.device, dtype=cdf.dtype)
+    index = torch.searchsorted(cdf, u * cdf[:, -1:], right=True)
+    return index.clamp_(max=probs.shape[-1] - 1).squeeze(-1)   # clamp: rounding at u * total ~ total
+
+
 def _positions(mask: torch.Tensor) -> torch.Tensor:
     """Position ids that start at 0 on each row's first real token (left padding skipped)."""
     return (mask.long().cumsum(-1) - 1).clamp(min=0)
@@ -94,8 +109,11 @@ def _positions(mask: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_size: int,
            max_new_tokens: int, eos_ids: list[int], pad_id: int, temperature: float = 1.0,
-           greedy: bool = False, generator: torch.Generator | None = None):
+           greedy: bool = False, generator: torch.Generator | None = None, fast: bool = False):
     """Sample ``group_size`` continuations of each prompt. Returns (ids, logprobs), [N, T].
+
+    ``fast`` draws each token with ``draw`` (inverse CDF) instead of ``torch.multinomial``: the
+    same distribution, a different stream of random numbers from the same generator.
 
     The prompt is prefilled once per *prompt* and its cache repeated G times (exact: the G
     copies see identical keys and values). Only the last prompt position's logits are
@@ -118,9 +136,11 @@ def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_
     live = torch.arange(n, device=logits.device)   # rows still being decoded
     tokens, token_logprobs = [], []
     for _ in range(max_new_tokens):
-        logp = F.log_softmax(logits if greedy else logits / temperature, dim=-1)
+        logp = F.log_softmax(logits if greedy or temperature == 1 else logits / temperature, dim=-1)
         if greedy:
             token = logp.argmax(-1)
+        elif fast:
+            token = draw(logp.exp(), generator)
         else:
             token = torch.multinomial(logp.exp(), 1, generator=generator).squeeze(-1)
         # finished rows get padding (and log-probability 0) from here on
@@ -152,8 +172,9 @@ def tokenize_prompts(tokenizer, prompts: list[str], device) -> tuple[torch.Tenso
 
 def rollout(model, tokenizer, prompts: list[str], *, group_size: int, max_new_tokens: int,
             eos_ids: list[int], temperature: float = 1.0, greedy: bool = False,
-            generator: torch.Generator | None = None) -> Rollout:
-    """Sample ``group_size`` completions for each prompt and package everything training needs.
+            generator: torch.Generator | None = None, fast: bool = False) -> Rollout:
+    """Sample ``group_size`` completions for each prompt and package everything training needs
+    (``fast``: see ``sample``).
 
     Completions are trimmed to the longest live one, so no step pays for columns of padding.
     """
@@ -162,7 +183,7 @@ def rollout(model, tokenizer, prompts: list[str], *, group_size: int, max_new_to
     ids, logprobs = sample(model, prompt_ids, prompt_mask, group_size=group_size,
                            max_new_tokens=max_new_tokens, eos_ids=eos_ids,
                            pad_id=tokenizer.pad_token_id, temperature=temperature,
-                           greedy=greedy, generator=generator)
+                           greedy=greedy, generator=generator, fast=fast)
     mask = completion_mask(ids, eos_ids)
     longest = int(mask.sum(-1).max())
     ids, logprobs, mask = ids[:, :longest], logprobs[:, :longest], mask[:, :longest]
@@ -178,80 +199,103 @@ def rollout(model, tokenizer, prompts: list[str], *, group_size: int, max_new_to
 
 # Rows per chunk of the training forward (rows sorted by completion length, each chunk cut to its
 # own longest completion): small enough that little padding is computed, large enough for
-# efficient matrix multiplies.
+# efficient matrix multiplies. Each chunk adds its share into every weight's gradient, so fewer,
+# larger chunks save those additions: the fast path's 32 (a whole cpu-preset batch) beats 8 on
+# SmolLM2 (benchmarks/kernels.py, in RESULTS.md), while the padding it adds is a few short
+# completions'.
 ROWS_PER_CHUNK = 8
+FAST_ROWS_PER_CHUNK = 32
 
 
 def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor,
                         completion_ids: torch.Tensor, completion_mask: torch.Tensor, *,
                         temperature: float = 1.0, with_entropy: bool = False,
                         entropy_grad: bool = False, group_size: int = 1,
-                        rows_per_chunk: int = ROWS_PER_CHUNK):
+                        rows_per_chunk: int | None = None, fast: bool = False):
     """log pi_theta(o_t | q, o_<t) for every completion token (with autograd), and optionally
-    the per-token entropy (differentiable only if ``entropy_grad``: when the entropy is just
-    logged, keeping its graph would hold several [N, T, vocab] tensors for nothing). Logits are
-    computed for completion positions only. Positions past the longest completion of a row's
-    chunk get 0; padding positions before that hold values that the loss's mask removes.
+    the per-token entropy (differentiable only if ``entropy_grad``). Positions after a row's
+    completion mask get 0.
 
     The same temperature as in sampling is applied, so on-policy the ratio pi_theta / pi_old
     starts at exactly 1 (up to floating-point noise).
 
-    Two savings, both exact:
+    Savings, all exact (the third and larger chunks only with ``fast``; without it the
+    computation is the one every stored run was made with, so those reproduce bitwise):
     - With ``group_size`` G > 1 (rows g*G ... g*G+G-1 share one prompt), each prompt is
       forwarded once, with autograd, and its keys/values are copied to its G completions. The
       gradient of a copy sums over the copies, so values and gradients are those of the
       full-sequence forward, at 1/G of the prompt's cost.
     - Rows are sorted by completion length and forwarded in chunks, each cut to its own longest
       completion: one long completion no longer makes every row pay for its length.
+    - The output layer is applied only at the masked tokens, chunk by chunk, without ever
+      holding their [tokens, vocab] logits (``logprobs.output_layer_logprobs``). Models whose
+      logits are not a plain linear map of the last hidden state get full logits instead.
     """
     N, T = completion_ids.shape
     lengths = completion_mask.sum(-1)
+    rows_per_chunk = rows_per_chunk or (FAST_ROWS_PER_CHUNK if fast else ROWS_PER_CHUNK)
+    fused = body_and_head(model) if fast else None
+    net = model if fused is None else fused[0]   # the whole model, or its body without the head
     prompt_kv = None
     if group_size > 1:
         unique_mask = prompt_mask[::group_size]
-        out = model(input_ids=prompt_ids[::group_size], attention_mask=unique_mask,
-                    position_ids=_positions(unique_mask), use_cache=True, logits_to_keep=1)
-        prompt_kv = (out.past_key_values, out.logits[:, -1:])
+        out = net(input_ids=prompt_ids[::group_size], attention_mask=unique_mask,
+                  position_ids=_positions(unique_mask), use_cache=True,
+                  **({} if fused else dict(logits_to_keep=1)))
+        last = out.logits[:, -1:] if fused is None else out.last_hidden_state[:, -1:]
+        prompt_kv = (out.past_key_values, last)
     logprobs = torch.zeros(N, T, device=completion_ids.device)
     entropy = torch.zeros(N, T, device=completion_ids.device) if with_entropy else None
     order = torch.argsort(lengths, descending=True, stable=True)
     for rows in order.split(rows_per_chunk):
         L = max(int(lengths[rows].max()), 1)
         if prompt_kv is None:
-            logits = _full_logits(model, prompt_ids[rows], prompt_mask[rows],
-                                  completion_ids[rows, :L], completion_mask[rows, :L])
+            outputs = _full_outputs(net, prompt_ids[rows], prompt_mask[rows],
+                                    completion_ids[rows, :L], completion_mask[rows, :L], fused is None)
         else:
-            logits = _shared_prompt_logits(model, *prompt_kv, rows // group_size, prompt_mask[rows],
-                                           completion_ids[rows, :L], completion_mask[rows, :L])
-        logits = logits.float() / temperature
-        # gather minus logsumexp = log_softmax at the chosen token, without a second [n, L, V] tensor
+            outputs = _shared_prompt_outputs(net, *prompt_kv, rows // group_size, prompt_mask[rows],
+                                             completion_ids[rows, :L], completion_mask[rows, :L],
+                                             fused is None)
         ids = completion_ids[rows, :L]
-        logprobs[rows, :L] = logits.gather(-1, ids.unsqueeze(-1)).squeeze(-1) - logits.logsumexp(-1)
+        if fused is None:   # full logits: gather minus logsumexp, without a second [n, L, V] tensor
+            logits = outputs.float() if temperature == 1 else outputs.float() / temperature
+            logprobs[rows, :L] = logits.gather(-1, ids.unsqueeze(-1)).squeeze(-1) - logits.logsumexp(-1)
+            if with_entropy:
+                with torch.set_grad_enabled(entropy_grad and torch.is_grad_enabled()):
+                    entropy[rows, :L] = token_entropy(logits)
+            continue
+        real = completion_mask[rows, :L].bool()
+        token_lp, token_entropy_ = output_layer_logprobs(outputs[real], fused[1], ids[real], temperature)
+        logprobs[rows, :L] = torch.zeros_like(real, dtype=token_lp.dtype).masked_scatter(real, token_lp)
         if with_entropy:
-            with torch.set_grad_enabled(entropy_grad and torch.is_grad_enabled()):
-                entropy[rows, :L] = token_entropy(logits)
+            token_entropy_ = token_entropy_ if entropy_grad else token_entropy_.detach()
+            entropy[rows, :L] = torch.zeros_like(real, dtype=token_lp.dtype).masked_scatter(real, token_entropy_)
     return logprobs, entropy
 
 
-def _full_logits(model, prompt_ids, prompt_mask, completion_ids, completion_mask):
-    """Logits predicting each completion token, from one forward over prompt + completion."""
+def _full_outputs(net, prompt_ids, prompt_mask, completion_ids, completion_mask, logits: bool):
+    """Logits (``logits``) or last hidden states predicting each completion token, from one
+    forward over prompt + completion."""
     input_ids = torch.cat([prompt_ids, completion_ids], dim=-1)
     attention = torch.cat([prompt_mask, completion_mask.to(prompt_mask.dtype)], dim=-1)
     T = completion_ids.shape[1]
     # Position P-1+t predicts completion token t, so keep the last T+1 positions and drop
     # the final one (it would predict a token after the completion).
-    return model(input_ids=input_ids, attention_mask=attention,
-                 position_ids=_positions(attention), logits_to_keep=T + 1).logits[:, :-1]
+    kwargs = dict(input_ids=input_ids, attention_mask=attention, position_ids=_positions(attention))
+    if logits:
+        return net(**kwargs, logits_to_keep=T + 1).logits[:, :-1]
+    return net(**kwargs).last_hidden_state[:, -T - 1:-1]
 
 
-def _shared_prompt_logits(model, prompt_cache, prompt_last_logits, groups, prompt_mask,
-                          completion_ids, completion_mask):
-    """Logits predicting each completion token of some rows, given their prompts' keys/values
-    (computed once per prompt, with autograd); ``groups`` says which prompt each row continues."""
+def _shared_prompt_outputs(net, prompt_cache, prompt_last, groups, prompt_mask,
+                           completion_ids, completion_mask, logits: bool):
+    """Logits or hidden states predicting each completion token of some rows, given their
+    prompts' keys/values (computed once per prompt, with autograd); ``groups`` says which prompt
+    each row continues, ``prompt_last`` is the prompt's last position's output."""
     from transformers import DynamicCache
 
     P, T = prompt_mask.shape[1], completion_ids.shape[1]
-    first = prompt_last_logits.index_select(0, groups)       # the last prompt position predicts o_0
+    first = prompt_last.index_select(0, groups)              # the last prompt position predicts o_0
     if T == 1:
         return first
     cache = DynamicCache()
@@ -259,6 +303,7 @@ def _shared_prompt_logits(model, prompt_cache, prompt_last_logits, groups, promp
         cache.update(layer.keys.index_select(0, groups), layer.values.index_select(0, groups), i)
     attention = torch.cat([prompt_mask, completion_mask.to(prompt_mask.dtype)], dim=-1)
     positions = _positions(attention)
-    rest = model(input_ids=completion_ids[:, :-1], attention_mask=attention[:, :P + T - 1],
-                 position_ids=positions[:, P:P + T - 1], past_key_values=cache, use_cache=True).logits
+    out = net(input_ids=completion_ids[:, :-1], attention_mask=attention[:, :P + T - 1],
+              position_ids=positions[:, P:P + T - 1], past_key_values=cache, use_cache=True)
+    rest = out.logits if logits else out.last_hidden_state
     return torch.cat([first, rest], dim=1)

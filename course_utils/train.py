@@ -30,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from . import checkpoint, data, interrupt, losses, models, plan, rewards
+from . import checkpoint, cpu, data, interrupt, losses, models, plan, rewards
 from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
 from .rollout import completion_logprobs, concat_rollouts, rollout
 
@@ -103,7 +103,8 @@ def evaluate(model, tokenizer, prompts: list[data.Prompt], cfg: Config, eos_ids:
         chunk = prompts[start:start + batch_size]
         out = rollout(model, tokenizer, [p.text for p in chunk], group_size=1,
                       max_new_tokens=cfg.max_new_tokens, eos_ids=eos_ids,
-                      temperature=cfg.temperature, greedy=greedy, generator=generator)
+                      temperature=cfg.temperature, greedy=greedy, generator=generator,
+                      fast=cfg.kernels == "fast")
         texts.extend(out.texts)
     s = score(prompts, texts, cfg.reward)
     checks = [rewards.check(t, p.target_chars, p.target_digit_sum) for t, p in zip(texts, prompts)]
@@ -144,7 +145,24 @@ class Policy:
     generator: torch.Generator
     ref_model: typing.Any = None
     kl_schedule: typing.Any = None   # losses.RewardAwareKL when cfg.kl_schedule == "reward_aware"
+    sampler: typing.Any = None       # a bf16 copy that samples, for bf16 on a CPU (sampling_model)
     counters: dict = field(default_factory=lambda: {"nonfinite_skipped": 0})
+
+
+def sampling_model(policy: Policy):
+    """The network that samples completions: the policy itself, or for bf16 on a CPU a bf16 copy
+    of it, refreshed from the fp32 weights on every call (a small share of sampling's time:
+    benchmarks/RESULTS.md).
+
+    Decoding is one token at a time, so its matrix products are thin and their cost is reading
+    the weights: bf16 weights are half the bytes, and a bf16 copy decodes without autocast's
+    per-call casts of every activation (benchmarks/RESULTS.md has both timings). The copy's
+    log-probabilities differ from the trainer's slightly (its norms and residual sums are bf16
+    too): the gap is measured in benchmarks/RESULTS.md."""
+    if policy.sampler is None:
+        return policy.model
+    policy.sampler.load_state_dict(policy.accelerator.unwrap_model(policy.model).state_dict())
+    return policy.sampler
 
 
 def _skip_update(policy: Policy, what: str) -> None:
@@ -161,11 +179,13 @@ def reference_logprobs(policy: Policy, ro) -> torch.Tensor:
     """log pi_ref of the sampled completions, for the KL term. Under LoRA the reference is the
     policy with its adapters disabled: the frozen base weights *are* the pre-trained model."""
     args = (ro.prompt_ids, ro.prompt_mask, ro.completion_ids, ro.completion_mask)
-    kwargs = dict(temperature=policy.cfg.temperature, group_size=policy.cfg.group_size)
-    if policy.ref_model is not None:
-        return completion_logprobs(policy.ref_model, *args, **kwargs)[0]
-    with policy.accelerator.unwrap_model(policy.model).disable_adapter():
-        return completion_logprobs(policy.model, *args, **kwargs)[0]
+    kwargs = dict(temperature=policy.cfg.temperature, group_size=policy.cfg.group_size,
+                  fast=policy.cfg.kernels == "fast")
+    with cpu_autocast(policy.cfg):
+        if policy.ref_model is not None:
+            return completion_logprobs(policy.ref_model, *args, **kwargs)[0]
+        with policy.accelerator.unwrap_model(policy.model).disable_adapter():
+            return completion_logprobs(policy.model, *args, **kwargs)[0]
 
 
 class PhaseTimer:
@@ -209,10 +229,13 @@ def sample_batch(policy: Policy, prompts: list[data.Prompt],
     cfg = policy.cfg
     G = cfg.group_size
 
+    sampler = sampling_model(policy)
+
     def sample(batch):
-        ro = rollout(policy.model, policy.tokenizer, [p.text for p in batch], group_size=G,
+        ro = rollout(sampler, policy.tokenizer, [p.text for p in batch], group_size=G,
                      max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
-                     temperature=cfg.temperature, generator=policy.generator)
+                     temperature=cfg.temperature, generator=policy.generator,
+                     fast=cfg.kernels == "fast")
         return ro, score([p for p in batch for _ in range(G)], ro.texts, cfg.reward)
 
     ro, scores = sample(prompts)
@@ -301,20 +324,30 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     model.train(cfg.gradient_checkpointing)
     stats_sum: dict[str, float] = {}
     loss_total, grad_norm = 0.0, float("nan")
+    # With a separate bf16 sampler, pi_old is scored by the trainer itself: the first update's
+    # log-probs (taken before any weight moves), so the ratio measures the policy's change and
+    # not the two networks' rounding (the sampler-trainer gap: benchmarks/RESULTS.md).
+    trainer_old: dict[int, torch.Tensor] = {}
     for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
         step_ok = True
         for start in range(0, n_local, rows_per_micro):
             rows = slice(start, start + rows_per_micro)
-            with timer("forward"):
+            with timer("forward"), cpu_autocast(cfg):
                 logprobs, entropy = completion_logprobs(
                     model, ro.prompt_ids[rows], ro.prompt_mask[rows], ro.completion_ids[rows],
                     ro.completion_mask[rows], temperature=cfg.temperature, with_entropy=True,
                     entropy_grad=ent_weight > 0,
-                    group_size=G if cfg.shares_prompt_in_training else 1)
+                    group_size=G if cfg.shares_prompt_in_training else 1, fast=cfg.kernels == "fast")
                 # One update per batch: pi_old is the current policy, so the ratio is exactly 1
-                # and the step is REINFORCE with a group baseline. More: pi_old is the sampler.
-                old = logprobs.detach() if cfg.updates_per_batch == 1 else ro.logprobs[rows]
+                # and the step is REINFORCE with a group baseline. More: pi_old is the sampler's
+                # log-probs, or with a bf16 sampler the trainer's own first ones (above).
+                if cfg.updates_per_batch == 1:
+                    old = logprobs.detach()
+                elif policy.sampler is None:
+                    old = ro.logprobs[rows]
+                else:
+                    old = trainer_old.setdefault(start, logprobs.detach())   # kept from update 0
                 loss, stats = losses.grpo_loss(
                     logprobs, old, advantages_local[rows], mask[rows], loss_type=cfg.loss_type,
                     eps_low=cfg.clip_eps_low, eps_high=cfg.clip_eps_high,
@@ -381,20 +414,51 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
 # ---------------------------------------------------------------------------------------------
 
 
+def effective_precision(cfg: Config) -> str:
+    """The precision a run computes in: cfg.precision, with 'auto' resolved for this machine
+    (bf16 on a CPU with native bf16 matrix units, fp32 on any other CPU and on a GPU)."""
+    if cfg.precision != "auto":
+        return cfg.precision
+    on_cpu = cfg.device == "cpu" or not torch.cuda.is_available()
+    return "bf16" if on_cpu and cpu.native_bf16() else "fp32"
+
+
+def cpu_autocast(cfg: Config):
+    """bf16 autocast for a CPU run's training forward, entered once around a whole micro-batch.
+
+    Autocast casts each fp32 weight to bf16 when an op first uses it and keeps the cast until
+    the outermost autocast block exits, so the weights are cast once per micro-batch; the
+    master weights, their gradients and AdamW stay fp32. (accelerate's mixed precision wraps
+    every forward call in its own block, which re-casts every weight at each call; on a CPU the
+    course does it here instead. On a GPU accelerate's autocast is kept.) Sampling uses a bf16
+    copy instead (``sampling_model``)."""
+    if effective_precision(cfg) == "bf16" and (cfg.device == "cpu" or not torch.cuda.is_available()):
+        return torch.autocast("cpu", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
 def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
     """Load tokenizer, policy (and reference model if kl_coef > 0), optimizer and scheduler."""
     from accelerate import Accelerator
     from accelerate.state import AcceleratorState, PartialState
 
     torch.manual_seed(cfg.seed)
-    mixed = {"fp32": "no", "fp16": "fp16", "bf16": "bf16"}[cfg.precision]
-    cpu = cfg.device == "cpu"
-    device_changed = PartialState._shared_state.get("_cpu", cpu) != cpu
+    precision = effective_precision(cfg)
+    on_cpu = cfg.device == "cpu" or not torch.cuda.is_available()
+    # a CPU run's bf16 is cpu_autocast's (see there), so accelerate is told "no"
+    mixed = "no" if precision == "fp32" or (precision == "bf16" and on_cpu) else precision
+    if cfg.precision == "auto":
+        print(f"[course_utils] precision auto: {precision} "
+              f"({'bf16 matrix units found' if precision == 'bf16' else 'no native bf16 on this machine'})")
+    if on_cpu:
+        cpu.keep_freed_memory()
+    cpu_only = cfg.device == "cpu"
+    device_changed = PartialState._shared_state.get("_cpu", cpu_only) != cpu_only
     if AcceleratorState._shared_state.get("_mixed_precision", mixed) != mixed or device_changed:
         # accelerate keeps one configuration per process; without this, a notebook that trains
         # again with another precision or device would be told to restart its runtime.
         AcceleratorState._reset_state(reset_partial_state=device_changed)
-    accelerator = Accelerator(mixed_precision=mixed, cpu=cpu)
+    accelerator = Accelerator(mixed_precision=mixed, cpu=cpu_only)
     tokenizer = models.load_tokenizer(cfg.model)
     if cfg.lora_rank:  # the base weights always come from cfg.model; a checkpoint holds adapters
         model = models.load_policy(cfg.model, seed=cfg.seed)
@@ -416,7 +480,11 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
         import bitsandbytes as bnb
         optimizer = bnb.optim.AdamW8bit(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay)
     else:
-        optimizer = torch.optim.AdamW(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        # fused: one pass over each weight instead of a dozen elementwise kernels, several times
+        # faster on the CPU (benchmarks/RESULTS.md, from kernels.py). The GPU keeps the default,
+        # whose interplay with fp16's gradient scaler is the one the T4 recipe was checked with.
+        optimizer = torch.optim.AdamW(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay,
+                                      fused=True if on_cpu and cfg.kernels == "fast" else None)
     warmup = max(cfg.warmup_steps, 0)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda step: min(1.0, (step + 1) / (warmup + 1)) if warmup else 1.0)
@@ -424,6 +492,15 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
     # processes' gradients itself (one all-reduce per update), which also keeps the shared-prompt
     # forward (two model calls per backward) simple. evaluation_mode still places the model on
     # the device and applies the mixed-precision autocast to its forward.
+    sampler = None
+    if precision == "bf16" and on_cpu and not cfg.lora_rank:
+        import copy
+
+        sampler = copy.deepcopy(model).to(torch.bfloat16).requires_grad_(False)
+        # Training forwards whole sequences: there, on a CPU, eager attention's plain matrix
+        # products beat the SDPA kernel's backward at these short lengths; the sampler decodes
+        # one token at a time and keeps SDPA (timed by benchmarks/kernels.py, in RESULTS.md).
+        model.set_attn_implementation("eager")
     model = accelerator.prepare_model(model, evaluation_mode=True)
     optimizer = accelerator.prepare_optimizer(optimizer)
     # one sampling stream per process (process 0's is the single-process run's)
@@ -432,7 +509,7 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
     return Policy(cfg=cfg, model=model, tokenizer=tokenizer, optimizer=optimizer,
                   scheduler=scheduler, accelerator=accelerator,
                   eos_ids=models.eos_token_ids(accelerator.unwrap_model(model), tokenizer),
-                  generator=generator, ref_model=ref_model,
+                  generator=generator, ref_model=ref_model, sampler=sampler,
                   kl_schedule=losses.RewardAwareKL(cfg.kl_coef) if cfg.kl_schedule == "reward_aware" else None)
 
 
@@ -621,8 +698,8 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     model = policy.model
 
     if "before" not in summary and main:
-        summary["before"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg,
-                                            policy.eos_ids, greedy=mode == "greedy")
+        summary["before"] = {mode: evaluate(sampling_model(policy), policy.tokenizer, eval_prompts,
+                                            cfg, policy.eos_ids, greedy=mode == "greedy")
                              for mode in ("sampled", "greedy")}
         checkpoint.write_json(summary_path, summary)
         _print_eval("before training", summary["before"])
@@ -636,7 +713,8 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
                             refill=lambda k, step=step: refill_batch(step, k, train_prompts, cfg))
         record = dict(step=step + 1, epoch=step // cfg.steps_per_epoch, **metrics)
         if cfg.eval_every and (step + 1) % cfg.eval_every == 0 and step + 1 < total and main:
-            ev = evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids, greedy=False)
+            ev = evaluate(sampling_model(policy), policy.tokenizer, eval_prompts, cfg, policy.eos_ids,
+                          greedy=False)
             record.update({f"eval_{k}": v for k, v in ev.items() if k != "samples"})
         if main:
             log.append(record)
@@ -654,8 +732,9 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     if not main:
         return {}
 
-    summary["after"] = {mode: evaluate(model, policy.tokenizer, eval_prompts, cfg, policy.eos_ids,
-                                       greedy=mode == "greedy") for mode in ("sampled", "greedy")}
+    summary["after"] = {mode: evaluate(sampling_model(policy), policy.tokenizer, eval_prompts, cfg,
+                                       policy.eos_ids, greedy=mode == "greedy")
+                        for mode in ("sampled", "greedy")}
     # the steps the model has taken: a checkpoint resumed with a smaller max_steps is past it
     summary["steps"] = max(start_step, total)
     # wall time, evaluation included, summed over the invocations that finished: a run that

@@ -271,3 +271,36 @@ def test_a_second_run_on_a_live_run_directory_is_refused_and_the_first_finishes_
     steps = [r["step"] for r in checkpoint.MetricsLog(out / "metrics.jsonl").read()]
     assert steps == [1, 2, 3]
     assert checkpoint.find(out).name == "checkpoint"
+
+
+@pytest.mark.parametrize("native, expected", [(True, "bf16"), (False, "fp32")])
+def test_auto_precision_takes_bf16_only_where_the_cpu_has_bf16_units(monkeypatch, native, expected):
+    monkeypatch.setattr(train.cpu, "native_bf16", lambda: native)
+    assert train.effective_precision(load_config("smoke", precision="auto", device="cpu")) == expected
+    assert train.effective_precision(load_config("smoke", precision="fp32", device="cpu")) == "fp32"
+
+
+def test_the_bf16_sampler_is_a_copy_refreshed_from_the_fp32_weights():
+    policy = train.setup(load_config("smoke", precision="bf16", device="cpu"))
+    assert policy.sampler is not None and policy.sampler is not policy.model
+    with torch.no_grad():
+        for p in policy.model.parameters():
+            p.add_(0.01)                      # as an optimizer step would
+    sampler = train.sampling_model(policy)
+    for (name, p), q in zip(policy.model.named_parameters(), sampler.parameters()):
+        assert q.dtype == torch.bfloat16 and p.dtype == torch.float32, name
+        assert torch.equal(q, p.detach().to(torch.bfloat16)), name
+    assert train.setup(load_config("smoke")).sampler is None   # fp32 samples with the policy
+
+
+def test_several_updates_with_a_bf16_sampler_take_pi_old_from_the_trainer():
+    # With a (practically) zero learning rate the policy never moves, so pi_theta / pi_old must be
+    # exactly 1 at every update. A clip range of 1e-6 turns any gap into clipped tokens: the
+    # bf16 sampler's own log-probs as pi_old would clip most of them.
+    cfg = load_config("smoke", precision="bf16", device="cpu", updates_per_batch=3, lr=1e-12,
+                      clip_eps_low=1e-6, clip_eps_high=1e-6, grad_accum=2)
+    policy = train.setup(cfg)
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5)
+               for t in ("One two", "Three", "Four five six", "Seven")]
+    metrics = train.grpo_step(policy, prompts)
+    assert metrics["clip_fraction"] == 0.0
