@@ -116,10 +116,11 @@ class Config:
                                 "with bf16 matrix units (AMX, AVX512-BF16), else fp32 (course_utils.cpu)",
                         ("fp32", "fp16", "bf16", "auto"))
     kernels: str = _f("reference", "'fast': tokens drawn by inverting the CDF, the output layer applied "
-                                   "only at completion tokens, 32 rows per training chunk, fused AdamW on a "
-                                   "CPU (the same distributions and gradients up to rounding, faster: "
-                                   "benchmarks/RESULTS.md); 'reference': the computation every run stored in "
-                                   "notebooks/results was made with, so those reproduce bitwise",
+                                   "only at completion tokens and 32 rows per training chunk (both on a CPU), "
+                                   "fused AdamW on a CPU: the same distributions and gradients up to "
+                                   "rounding, a faster step (benchmarks/RESULTS.md); 'reference': in fp32, "
+                                   "bitwise the computation every run stored in notebooks/results was made "
+                                   "with, so those reproduce",
                       ("reference", "fast"))
     device: str = _f("auto", "'auto': a GPU if there is one (accelerate's choice: CUDA, or MPS on "
                              "Apple Silicon); 'cpu': always the CPU, so a CPU run is the same "

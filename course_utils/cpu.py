@@ -4,15 +4,16 @@ Two facts measured on the machines this course is built on (benchmarks/RESULTS.m
 
 * **bf16 matrix units.** Intel's AMX (and, slower, AVX512-BF16) multiply bf16 matrices 5-7x
   faster than fp32; a CPU without them (many laptops, Colab's CPU runtimes) emulates bf16 and
-  is *slower* in it than in fp32. ``native_bf16()`` tells which kind this is, and the ``cpu``
-  preset's ``precision='auto'`` picks bf16 only where it is native.
+  is *slower* in it than in fp32. ``native_bf16()`` tells which kind this is, and
+  ``precision='auto'`` picks bf16 only where it is native.
 * **Fresh pages cost more than arithmetic.** A GRPO step allocates several vocabulary-sized
   tensors ([rows, tokens, 49,152] floats, 100+ MB each). glibc hands every allocation above
   32 MB to ``mmap``, so each one arrives as fresh pages that the kernel must fault in and zero,
   and an element-wise pass into a new tensor costs several times one into an existing tensor.
   ``keep_freed_memory()`` makes glibc serve large blocks from its heap and keep them, so
   the second step reuses the first step's pages. It changes no number, only time: in
-  benchmarks/step_speed.py the ``reference fp32`` arm differs from ``old fp32`` by this alone.
+  benchmarks/step_speed.py the ``reference fp32`` arm differs from ``old fp32`` by this and by
+  skipping divisions by a temperature of 1 (which change nothing either).
 """
 
 from __future__ import annotations

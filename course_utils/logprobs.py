@@ -35,6 +35,7 @@ CHUNK_TOKENS = 512
 class _OutputLayerLogprobs(torch.autograd.Function):
     @staticmethod
     def forward(ctx, hidden, weight, ids, inv_temperature: float, dtype: torch.dtype, chunk: int):
+        ctx.set_materialize_grads(False)   # an unused output's gradient arrives as None, not zeros
         w = weight.to(dtype)
         n = hidden.shape[0]
         wide = torch.promote_types(dtype, torch.float32)   # float32, or float64 for float64 inputs

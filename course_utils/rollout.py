@@ -88,9 +88,10 @@ def completion_mask(completion_ids: torch.Tensor, eos_ids: list[int]) -> torch.T
 
 
 def draw(probs: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-    """One token per row of ``probs`` [n, V], drawn exactly from it by inverting the CDF: token k
-    is chosen when u * total falls in [cdf[k-1], cdf[k]), which happens with probability
-    probs[k] / total (a token of probability 0 has an empty interval and is never drawn).
+    """One token per row of ``probs`` [n, V], drawn from it by inverting the CDF: token k is
+    chosen when u * total falls in [cdf[k-1], cdf[k]), which happens with probability
+    probs[k] / total up to float rounding (a token of probability 0 has an empty interval and is
+    never drawn: the CPU's cumulative sum adds exactly nothing for it).
 
     One uniform number per row instead of ``torch.multinomial``'s V exponential draws: on the
     49,152-token vocabulary that is most of a decoding step's sampling time
@@ -139,8 +140,8 @@ def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_
         logp = F.log_softmax(logits if greedy or temperature == 1 else logits / temperature, dim=-1)
         if greedy:
             token = logp.argmax(-1)
-        elif fast:
-            token = draw(logp.exp(), generator)
+        elif fast and logp.device.type == "cpu":   # (a GPU's float32 scan could give a
+            token = draw(logp.exp(), generator)    # zero-probability token a sliver of the CDF)
         else:
             token = torch.multinomial(logp.exp(), 1, generator=generator).squeeze(-1)
         # finished rows get padding (and log-probability 0) from here on
@@ -200,9 +201,9 @@ def rollout(model, tokenizer, prompts: list[str], *, group_size: int, max_new_to
 # Rows per chunk of the training forward (rows sorted by completion length, each chunk cut to its
 # own longest completion): small enough that little padding is computed, large enough for
 # efficient matrix multiplies. Each chunk adds its share into every weight's gradient, so fewer,
-# larger chunks save those additions: the fast path's 32 (a whole cpu-preset batch) beats 8 on
-# SmolLM2 (benchmarks/kernels.py, in RESULTS.md), while the padding it adds is a few short
-# completions'.
+# larger chunks save those additions: under bf16 autocast the fast path's 32 (a whole cpu-preset
+# batch) beats 8 on SmolLM2 (benchmarks/kernels.py, in RESULTS.md; in fp32 it does not), while
+# the padding it adds is a few short completions'.
 ROWS_PER_CHUNK = 8
 FAST_ROWS_PER_CHUNK = 32
 
@@ -213,8 +214,9 @@ def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tens
                         entropy_grad: bool = False, group_size: int = 1,
                         rows_per_chunk: int | None = None, fast: bool = False):
     """log pi_theta(o_t | q, o_<t) for every completion token (with autograd), and optionally
-    the per-token entropy (differentiable only if ``entropy_grad``). Positions after a row's
-    completion mask get 0.
+    the per-token entropy (differentiable only if ``entropy_grad``). Positions past the longest
+    completion of a row's chunk get 0; padding positions before that hold values that the loss's
+    mask removes (with the fused output layer, 0 as well).
 
     The same temperature as in sampling is applied, so on-policy the ratio pi_theta / pi_old
     starts at exactly 1 (up to floating-point noise).
@@ -227,14 +229,17 @@ def completion_logprobs(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tens
       full-sequence forward, at 1/G of the prompt's cost.
     - Rows are sorted by completion length and forwarded in chunks, each cut to its own longest
       completion: one long completion no longer makes every row pay for its length.
-    - The output layer is applied only at the masked tokens, chunk by chunk, without ever
-      holding their [tokens, vocab] logits (``logprobs.output_layer_logprobs``). Models whose
-      logits are not a plain linear map of the last hidden state get full logits instead.
+    - On a CPU the output layer is applied only at the masked tokens, chunk by chunk, without
+      keeping their [tokens, vocab] logits for the backward (``logprobs.output_layer_logprobs``).
+      Models whose logits are not a plain linear map of the last hidden state get full logits.
     """
     N, T = completion_ids.shape
     lengths = completion_mask.sum(-1)
     rows_per_chunk = rows_per_chunk or (FAST_ROWS_PER_CHUNK if fast else ROWS_PER_CHUNK)
-    fused = body_and_head(model) if fast else None
+    # The fused output layer runs on a CPU only: there the course's bf16 is its own autocast
+    # block around this call, while on a GPU accelerate's autocast wraps model.forward and
+    # calling the body directly would step outside it.
+    fused = body_and_head(model) if fast and completion_ids.device.type == "cpu" else None
     net = model if fused is None else fused[0]   # the whole model, or its body without the head
     prompt_kv = None
     if group_size > 1:

@@ -324,10 +324,12 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     model.train(cfg.gradient_checkpointing)
     stats_sum: dict[str, float] = {}
     loss_total, grad_norm = 0.0, float("nan")
-    # With a separate bf16 sampler, pi_old is scored by the trainer itself: the first update's
+    # With bf16 on a CPU (a separate bf16 sampler, or under LoRA fp32 sampling while training
+    # runs under autocast), pi_old is scored by the trainer itself: the first update's
     # log-probs (taken before any weight moves), so the ratio measures the policy's change and
     # not the two networks' rounding (the sampler-trainer gap: benchmarks/RESULTS.md).
     trainer_old: dict[int, torch.Tensor] = {}
+    cpu_bf16 = effective_precision(cfg) == "bf16" and runs_on_cpu(cfg)   # sampled in other numerics
     for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
         step_ok = True
@@ -344,7 +346,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                 # log-probs, or with a bf16 sampler the trainer's own first ones (above).
                 if cfg.updates_per_batch == 1:
                     old = logprobs.detach()
-                elif policy.sampler is None:
+                elif policy.sampler is None and not cpu_bf16:
                     old = ro.logprobs[rows]
                 else:
                     old = trainer_old.setdefault(start, logprobs.detach())   # kept from update 0
@@ -414,13 +416,19 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
 # ---------------------------------------------------------------------------------------------
 
 
+def runs_on_cpu(cfg: Config) -> bool:
+    """Whether a run computes on the CPU: asked for, or no accelerator (CUDA, Apple's MPS) there
+    for accelerate to pick."""
+    mps = getattr(torch.backends, "mps", None)
+    return cfg.device == "cpu" or not (torch.cuda.is_available() or (mps is not None and mps.is_available()))
+
+
 def effective_precision(cfg: Config) -> str:
     """The precision a run computes in: cfg.precision, with 'auto' resolved for this machine
     (bf16 on a CPU with native bf16 matrix units, fp32 on any other CPU and on a GPU)."""
     if cfg.precision != "auto":
         return cfg.precision
-    on_cpu = cfg.device == "cpu" or not torch.cuda.is_available()
-    return "bf16" if on_cpu and cpu.native_bf16() else "fp32"
+    return "bf16" if runs_on_cpu(cfg) and cpu.native_bf16() else "fp32"
 
 
 def cpu_autocast(cfg: Config):
@@ -432,7 +440,7 @@ def cpu_autocast(cfg: Config):
     every forward call in its own block, which re-casts every weight at each call; on a CPU the
     course does it here instead. On a GPU accelerate's autocast is kept.) Sampling uses a bf16
     copy instead (``sampling_model``)."""
-    if effective_precision(cfg) == "bf16" and (cfg.device == "cpu" or not torch.cuda.is_available()):
+    if effective_precision(cfg) == "bf16" and runs_on_cpu(cfg):
         return torch.autocast("cpu", dtype=torch.bfloat16)
     return contextlib.nullcontext()
 
@@ -444,7 +452,7 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
 
     torch.manual_seed(cfg.seed)
     precision = effective_precision(cfg)
-    on_cpu = cfg.device == "cpu" or not torch.cuda.is_available()
+    on_cpu = runs_on_cpu(cfg)
     # a CPU run's bf16 is cpu_autocast's (see there), so accelerate is told "no"
     mixed = "no" if precision == "fp32" or (precision == "bf16" and on_cpu) else precision
     if cfg.precision == "auto":

@@ -70,7 +70,7 @@ def test_verdict_names_the_detectable_difference_and_shows_every_seed():
         assert f"{d:+.3f}" in text
     assert "2 df" in text
     clear = stats.paired([1.0, 1.1, 0.9, 1.05], [0.0, 0.05, -0.1, 0.02])
-    assert clear.verdict().endswith("a difference")
+    assert clear.verdict().endswith("excludes 0: a difference")
     assert stats.paired([1, 2], [1, 2]).verdict().endswith("identical on every seed")
 
 
@@ -89,3 +89,16 @@ def test_interval_by_hand():
 def test_bad_input_is_refused(a, b, match):
     with pytest.raises(ValueError, match=match):
         stats.paired(a, b)
+
+
+def test_the_sign_flip_test_finds_a_clear_difference_and_states_its_floor():
+    # all eight differences positive: only the all-plus and all-minus patterns are as extreme
+    diffs = [1.0, 1.2, 0.9, 1.1, 1.3, 0.8, 1.0, 1.05]
+    assert stats.sign_flip_p_value(diffs) == 2 / 2 ** 8
+    assert stats.sign_flip_p_value([1.0, -1.0, 0.5, -0.5]) == 1.0   # symmetric: nothing to see
+    text = stats.paired([1.0, 1.1, 0.9], [0.0, 0.0, 0.0]).verdict()
+    assert "smallest possible with 3 seeds: 0.25" in text          # 3 seeds cannot reach p < 0.05
+
+
+def test_extreme_t_quantiles_are_not_cut_off():
+    assert abs(stats.t_quantile(0.99995, 1) - 6366.2) < 0.5      # tables: t_{.99995, 1} = 6366.2

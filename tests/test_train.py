@@ -303,4 +303,18 @@ def test_several_updates_with_a_bf16_sampler_take_pi_old_from_the_trainer():
     prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5)
                for t in ("One two", "Three", "Four five six", "Seven")]
     metrics = train.grpo_step(policy, prompts)
+    assert metrics["adv_abs_mean"] > 0        # tokens with an advantage, so clipping could show
     assert metrics["clip_fraction"] == 0.0
+
+
+def test_an_apple_gpu_is_not_taken_for_a_cpu(monkeypatch):
+    # accelerate picks MPS when it is there, so neither the CPU's bf16 autocast nor its bf16
+    # sampler may be used then; asking for the CPU is the CPU everywhere
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
+    assert not train.runs_on_cpu(load_config("smoke"))
+    assert train.runs_on_cpu(load_config("smoke", device="cpu"))
+    monkeypatch.setattr(train.cpu, "native_bf16", lambda: True)
+    assert train.effective_precision(load_config("smoke", precision="auto")) == "fp32"
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    assert train.runs_on_cpu(load_config("smoke"))
