@@ -68,9 +68,9 @@ def _status_gib(field: str) -> float:
     raise RuntimeError(f"{field} not in /proc/self/status")
 
 
-def matmul_peak_flops(n: int = 2048, repeats: int = 8) -> float:
-    """Best-case float32 FLOP/s of this machine: large square matmuls, best of 3."""
-    a, b = torch.randn(n, n), torch.randn(n, n)
+def matmul_peak_flops(n: int = 2048, repeats: int = 8, dtype: torch.dtype = torch.float32) -> float:
+    """Best-case FLOP/s of this machine in ``dtype``: large square matmuls, best of 3."""
+    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
     a @ b
     best = float("inf")
     for _ in range(3):

@@ -11,22 +11,14 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 
 import torch
 
+from grpo_vs_trl import matmul_peak_flops   # benchmarks/ is this script's folder, so on sys.path
 
-def matmul_gflops(dtype: torch.dtype, n: int = 2048, repeats: int = 6) -> float:
-    """Best of 3: large square products, the most this process can get from a matmul."""
-    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
-    a @ b
-    best = float("inf")
-    for _ in range(3):
-        start = time.perf_counter()
-        for _ in range(repeats):
-            a @ b
-        best = min(best, time.perf_counter() - start)
-    return 2 * n ** 3 * repeats / best / 1e9
+
+def matmul_gflops(dtype: torch.dtype) -> float:
+    return matmul_peak_flops(repeats=6, dtype=dtype) / 1e9
 
 
 def main() -> None:

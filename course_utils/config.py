@@ -158,6 +158,10 @@ class Config:
         return math.ceil(self.train_prompts / self.prompts_per_step)
 
     @property
+    def fast_kernels(self) -> bool:
+        return self.kernels == "fast"
+
+    @property
     def shares_prompt_in_training(self) -> bool:
         """Whether the training forward runs each prompt once for its whole group (exact, and
         1/G of the prompt's cost). Not with gradient checkpointing: transformers switches the

@@ -19,6 +19,7 @@ Two facts measured on the machines this course is built on (benchmarks/RESULTS.m
 from __future__ import annotations
 
 import ctypes
+import functools
 import ctypes.util
 import platform
 import sys
@@ -38,6 +39,7 @@ def _cpu_flags() -> set[str]:
     return set()
 
 
+@functools.cache   # the machine does not change; torch's probe is not free
 def native_bf16() -> bool:
     """True when bf16 matrix products run on hardware units (AMX or AVX512-BF16), not emulated.
 

@@ -104,7 +104,7 @@ def evaluate(model, tokenizer, prompts: list[data.Prompt], cfg: Config, eos_ids:
         out = rollout(model, tokenizer, [p.text for p in chunk], group_size=1,
                       max_new_tokens=cfg.max_new_tokens, eos_ids=eos_ids,
                       temperature=cfg.temperature, greedy=greedy, generator=generator,
-                      fast=cfg.kernels == "fast")
+                      fast=cfg.fast_kernels)
         texts.extend(out.texts)
     s = score(prompts, texts, cfg.reward)
     checks = [rewards.check(t, p.target_chars, p.target_digit_sum) for t, p in zip(texts, prompts)]
@@ -180,7 +180,7 @@ def reference_logprobs(policy: Policy, ro) -> torch.Tensor:
     policy with its adapters disabled: the frozen base weights *are* the pre-trained model."""
     args = (ro.prompt_ids, ro.prompt_mask, ro.completion_ids, ro.completion_mask)
     kwargs = dict(temperature=policy.cfg.temperature, group_size=policy.cfg.group_size,
-                  fast=policy.cfg.kernels == "fast")
+                  fast=policy.cfg.fast_kernels)
     with cpu_autocast(policy.cfg):
         if policy.ref_model is not None:
             return completion_logprobs(policy.ref_model, *args, **kwargs)[0]
@@ -235,7 +235,7 @@ def sample_batch(policy: Policy, prompts: list[data.Prompt],
         ro = rollout(sampler, policy.tokenizer, [p.text for p in batch], group_size=G,
                      max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
                      temperature=cfg.temperature, generator=policy.generator,
-                     fast=cfg.kernels == "fast")
+                     fast=cfg.fast_kernels)
         return ro, score([p for p in batch for _ in range(G)], ro.texts, cfg.reward)
 
     ro, scores = sample(prompts)
@@ -329,7 +329,6 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     # log-probs (taken before any weight moves), so the ratio measures the policy's change and
     # not the two networks' rounding (the sampler-trainer gap: benchmarks/RESULTS.md).
     trainer_old: dict[int, torch.Tensor] = {}
-    cpu_bf16 = effective_precision(cfg) == "bf16" and runs_on_cpu(cfg)   # sampled in other numerics
     for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
         step_ok = True
@@ -340,13 +339,13 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                     model, ro.prompt_ids[rows], ro.prompt_mask[rows], ro.completion_ids[rows],
                     ro.completion_mask[rows], temperature=cfg.temperature, with_entropy=True,
                     entropy_grad=ent_weight > 0,
-                    group_size=G if cfg.shares_prompt_in_training else 1, fast=cfg.kernels == "fast")
+                    group_size=G if cfg.shares_prompt_in_training else 1, fast=cfg.fast_kernels)
                 # One update per batch: pi_old is the current policy, so the ratio is exactly 1
                 # and the step is REINFORCE with a group baseline. More: pi_old is the sampler's
                 # log-probs, or with a bf16 sampler the trainer's own first ones (above).
                 if cfg.updates_per_batch == 1:
                     old = logprobs.detach()
-                elif policy.sampler is None and not cpu_bf16:
+                elif not cpu_bf16(cfg):   # pi_old: the sampler's log-probs, same numerics
                     old = ro.logprobs[rows]
                 else:
                     old = trainer_old.setdefault(start, logprobs.detach())   # kept from update 0
@@ -431,6 +430,12 @@ def effective_precision(cfg: Config) -> str:
     return "bf16" if runs_on_cpu(cfg) and cpu.native_bf16() else "fp32"
 
 
+def cpu_bf16(cfg: Config) -> bool:
+    """A bf16 run on the CPU: trained under ``cpu_autocast``, sampled by a bf16 copy (or, under
+    LoRA, by the fp32 policy), so sampler and trainer score tokens in different numerics."""
+    return runs_on_cpu(cfg) and effective_precision(cfg) == "bf16"
+
+
 def cpu_autocast(cfg: Config):
     """bf16 autocast for a CPU run's training forward, entered once around a whole micro-batch.
 
@@ -440,7 +445,7 @@ def cpu_autocast(cfg: Config):
     every forward call in its own block, which re-casts every weight at each call; on a CPU the
     course does it here instead. On a GPU accelerate's autocast is kept.) Sampling uses a bf16
     copy instead (``sampling_model``)."""
-    if effective_precision(cfg) == "bf16" and runs_on_cpu(cfg):
+    if cpu_bf16(cfg):
         return torch.autocast("cpu", dtype=torch.bfloat16)
     return contextlib.nullcontext()
 
@@ -492,7 +497,7 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
         # faster on the CPU (benchmarks/RESULTS.md, from kernels.py). The GPU keeps the default,
         # whose interplay with fp16's gradient scaler is the one the T4 recipe was checked with.
         optimizer = torch.optim.AdamW(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                                      fused=True if on_cpu and cfg.kernels == "fast" else None)
+                                      fused=True if on_cpu and cfg.fast_kernels else None)
     warmup = max(cfg.warmup_steps, 0)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda step: min(1.0, (step + 1) / (warmup + 1)) if warmup else 1.0)
@@ -501,7 +506,7 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
     # forward (two model calls per backward) simple. evaluation_mode still places the model on
     # the device and applies the mixed-precision autocast to its forward.
     sampler = None
-    if precision == "bf16" and on_cpu and not cfg.lora_rank:
+    if cpu_bf16(cfg) and not cfg.lora_rank:
         import copy
 
         sampler = copy.deepcopy(model).to(torch.bfloat16).requires_grad_(False)
@@ -706,8 +711,9 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     model = policy.model
 
     if "before" not in summary and main:
-        summary["before"] = {mode: evaluate(sampling_model(policy), policy.tokenizer, eval_prompts,
-                                            cfg, policy.eos_ids, greedy=mode == "greedy")
+        sampler = sampling_model(policy)   # refreshed once for both evaluations
+        summary["before"] = {mode: evaluate(sampler, policy.tokenizer, eval_prompts, cfg,
+                                            policy.eos_ids, greedy=mode == "greedy")
                              for mode in ("sampled", "greedy")}
         checkpoint.write_json(summary_path, summary)
         _print_eval("before training", summary["before"])
@@ -740,7 +746,8 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     if not main:
         return {}
 
-    summary["after"] = {mode: evaluate(sampling_model(policy), policy.tokenizer, eval_prompts, cfg,
+    sampler = sampling_model(policy)
+    summary["after"] = {mode: evaluate(sampler, policy.tokenizer, eval_prompts, cfg,
                                        policy.eos_ids, greedy=mode == "greedy")
                         for mode in ("sampled", "greedy")}
     # the steps the model has taken: a checkpoint resumed with a smaller max_steps is past it
