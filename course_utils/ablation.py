@@ -19,9 +19,9 @@ import statistics
 from collections import Counter
 from pathlib import Path
 
-from . import train
+from . import data, stats, train
 from .config import PRESETS, load_config, smoke_mode
-from .tracks import differs, finished, plot_curves, records
+from .tracks import finished, plot_curves, records
 
 RUNS = Path("runs/ablation")
 FULL = "full recipe (the cpu preset)"
@@ -189,10 +189,60 @@ def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
     plot_curves(dirs, [("first_round_pass_both", "sampled pass rate (both), before selection"),
                        ("entropy", "entropy (nats/token)"), ("zero_std_frac", "groups without signal"),
                        ("chars_abs_error", "|chars - 32|")], out / "curves.png")
+    first_summary = json.loads((next(iter(dirs.values()))[0] / "summary.json").read_text())
+    held = first_summary["after"]["greedy"]
+    result = dict(seeds=seeds, arms={arm: dict(overrides=ARMS[arm], runs=rows, dirs=[str(d) for d in dirs[arm]])
+                                     for arm, rows in results.items()},
+                  preset=PRESETS["cpu"],
+                  held_out=dict(prompts=len(held["samples"]), snippets=held["distinct_snippets"]))
+    return write_report(result, out)
+
+
+def held_out_size(result: dict) -> dict:
+    """The held-out set's size: as stored, or (for a result.json written before it was stored)
+    the cpu preset's, which every stored arm used."""
+    if "held_out" in result:
+        return result["held_out"]
+    snippets = sum(data.is_held_out(s) for s in data.offline_snippets())
+    prompts = PRESETS["cpu"]["eval_prompts"]
+    return dict(prompts=prompts, snippets=min(prompts, snippets))
+
+
+def comparisons(result: dict) -> list[str]:
+    """Each arm against the full recipe, paired by seed (``course_utils.stats``): the arms share
+    seeds, so they share prompts, targets and, until they part, samples. Only the seeds both
+    arms have are compared."""
+    arms = result["arms"]
+    seeds = lambda arm: [Path(d).name.removeprefix("seed") for d in arms[arm]["dirs"]]  # noqa: E731
+    lines = []
+    for arm in arms:
+        if arm == FULL:
+            continue
+        shared = [s for s in seeds(arm) if s in seeds(FULL)]
+        for key, label in (("pass_both", "held-out pass rate (both)"),
+                           ("pass_both_two_digit", "two-digit targets")):
+            value = lambda a: {s: r[key] for s, r in zip(seeds(a), arms[a]["runs"])}  # noqa: E731
+            a, b = value(arm), value(FULL)
+            if len(shared) < 2:
+                verdict = f"{len(shared)} shared seed(s): too few to compare"
+            elif not all(math.isfinite(v[s]) for v in (a, b) for s in shared):
+                verdict = "some seed's held-out set has no such target"
+            else:
+                verdict = stats.paired([a[s] for s in shared], [b[s] for s in shared]).verdict("{:+.1%}")
+            lines.append(f"- {arm} minus the full recipe, {label}, seeds {', '.join(shared)}: {verdict}")
+    return lines
+
+
+def write_report(result: dict, out: Path) -> dict:
+    """``report.md`` and ``result.json`` in ``out`` from the per-seed results (``curves.png`` is
+    drawn by ``ablation`` from the runs themselves). ``--rerender`` calls this on a stored
+    result.json, so a change to the report's wording or statistics needs no run."""
+    arms = result["arms"]
     header = ("| arm | seeds | both constraints, per seed | first sampled pass, step per seed | " +
               " | ".join(label for _, label, _ in METRICS) + " | seconds | groups sampled |")
     lines = [header, "|" + "---|" * (len(METRICS) + 6)]
-    for arm, rows in results.items():
+    for arm, row in arms.items():
+        rows = row["runs"]
         cells = []
         for key, _, fmt in METRICS:
             values = [r[key] for r in rows if not math.isnan(r[key])]  # nan: no such target
@@ -205,32 +255,28 @@ def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
             cells.append(cell)
         seconds = statistics.mean(r["seconds"] for r in rows)
         groups = statistics.mean(r["groups_sampled"] for r in rows)
-        seeds_of = ", ".join(d.name.removeprefix("seed") for d in dirs[arm])
+        seeds_of = ", ".join(Path(d).name.removeprefix("seed") for d in row["dirs"])
         per_seed = ", ".join(f"{r['pass_both']:.1%}" for r in rows)
         first = ", ".join(str(r["first_pass_step"] or "never") for r in rows)
         lines.append(f"| {arm} | {seeds_of} | {per_seed} | {first} | " + " | ".join(cells) +
                      f" | {seconds:.0f} | {groups:.0f} |")
-    full = [r["pass_both"] for r in results[FULL]]
-    verdicts = [f"- {arm} vs the full recipe, held-out pass rate (both): "
-                f"{differs([r['pass_both'] for r in rows], full)}"
-                for arm, rows in results.items() if arm != FULL]
-    missing = [arm for arm in ARMS if arm not in results]
-    first_summary = json.loads((next(iter(dirs.values()))[0] / "summary.json").read_text())
-    held = first_summary["after"]["greedy"]
-    report = (f"Held-out greedy evaluation after training ({len(held['samples'])} prompts built "
-              f"from {held['distinct_snippets']} distinct held-out snippets, each with its own "
+    result = {**result, "verdicts": comparisons(result)}
+    missing = [arm for arm in ARMS if arm not in arms]
+    held = held_out_size(result)
+    report = (f"Held-out greedy evaluation after training ({held['prompts']} prompts built "
+              f"from {held['snippets']} distinct held-out snippets, each with its own "
               "drawn digit-sum target; mean ± std over the seeds listed, the "
               "value alone for one seed; every "
               "arm is the `cpu` preset with the changes its name says; first sampled pass: the first training step "
               "whose first round of samples held a completion passing both constraints; seconds: "
               "wall time of a run, evaluation included, not a speed comparison, since some runs "
               "shared the machine with other work; groups sampled: over the whole run, the "
-              "cost that does compare):\n\n" + "\n".join(lines) + "\n\n" +
-              ("\n".join(verdicts) + "\n" if verdicts else "") +
+              "cost that does compare). Each arm against the full recipe, seed by seed "
+              "(`course_utils.stats.paired`: 95% t-interval on n - 1 degrees of freedom, exact "
+              "sign-flip test, and the smallest difference the seeds could detect):\n\n" +
+              "\n".join(lines) + "\n\n" +
+              ("\n".join(result["verdicts"]) + "\n" if result["verdicts"] else "") +
               (f"\nNot run yet: {', '.join(missing)}.\n" if missing else ""))
-    result = dict(seeds=seeds, arms={arm: dict(overrides=ARMS[arm], runs=rows, dirs=[str(d) for d in dirs[arm]])
-                                     for arm, rows in results.items()},
-                  preset=PRESETS["cpu"], verdicts=verdicts)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.md").write_text(report)
     (out / "result.json").write_text(json.dumps(result, indent=2))
@@ -246,7 +292,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--arms", nargs="+", default=None, help="arm names (default: all)")
     parser.add_argument("--report-only", action="store_true",
                         help="train nothing: report the runs that have finished")
+    parser.add_argument("--rerender", action="store_true",
+                        help="train and read no run: rewrite report.md from the result.json in --out")
     args = parser.parse_args(argv)
+    if args.rerender:
+        stored = args.out / "result.json"
+        if not stored.is_file():
+            raise SystemExit(f"error: --rerender needs {stored}; run the ablation into --out first")
+        write_report(json.loads(stored.read_text()), args.out)
+        return 0
     ablation(args.seeds, args.out, args.arms, train_missing=not args.report_only)
     return 0
 

@@ -51,8 +51,9 @@ class Config:
                                 "prompt_style='raw', where the rule cannot vary)")
     reward: str = _f("binary", "'binary': 1 only if both constraints pass (the recipe); 'shaped': "
                                "partial credit relative to the target; 'sharp': 2/3 of 'shaped' plus 1/3 of "
-                               "'binary', so a pass pays clearly more than a near miss (rewards.py)",
-                        ("binary", "shaped", "sharp"))
+                               "'binary', so a pass pays clearly more than a near miss; 'graded': the digit part in "
+                               "whole units of the digit sum and 0 without digits (rewards.py)",
+                        ("binary", "shaped", "sharp", "graded"))
     # --- how much data -----------------------------------------------------------------------
     train_prompts: int = _f(1024, "number of distinct training prompts")
     eval_prompts: int = _f(100, "number of held-out prompts for before/after evaluation")
@@ -103,13 +104,23 @@ class Config:
                                       "(running reward variance / this batch's) x (last gradient "
                                       "norm / running mean), clipped to [1/4, 4] (losses.RewardAwareKL)",
                           ("constant", "reward_aware"))
-    entropy_bonus: str = _f("none", "course extension, not part of GRPO: 'constant' adds "
-                                    "entropy_coef * entropy, 'inverse_variance' scales it by "
-                                    "1 / (batch reward variance), capped",
-                            ("none", "constant", "inverse_variance"))
-    entropy_coef: float = _f(0.0, "entropy bonus coefficient")
-    entropy_weight_max: float = _f(0.1, "cap on the inverse-variance entropy weight, so it stays "
-                                        "finite when every reward in the batch is equal")
+    entropy_bonus: str = _f("none", "not part of GRPO: 'constant' adds entropy_coef * entropy, "
+                                    "'inverse_variance' scales it by 1 / (batch reward variance), "
+                                    "capped; 'adaptive' (Skywork-OR1, TRL's use_adaptive_entropy) "
+                                    "moves its weight by entropy_coef a step to hold the entropy "
+                                    "at entropy_target (losses.AdaptiveEntropy)",
+                            ("none", "constant", "inverse_variance", "adaptive"))
+    entropy_coef: float = _f(0.0, "entropy bonus coefficient ('adaptive': its change per step)")
+    entropy_target: float = _f(0.5, "'adaptive' entropy bonus: the entropy per completion token, "
+                                    "in nats, it holds the policy at")
+    entropy_weight_max: float = _f(0.1, "cap on the inverse-variance and adaptive entropy weights, "
+                                        "so they stay finite")
+    # --- which prompts a step trains on ----------------------------------------------------------
+    target_sampling: str = _f("uniform", "'uniform': a seeded shuffle of the training prompts; "
+                                         "'prioritized': target digit sums drawn with weight "
+                                         "0.1 + (1 - running pass rate), so unsolved targets get "
+                                         "more samples (course_utils/curriculum.py)",
+                              ("uniform", "prioritized"))
     # --- engineering ---------------------------------------------------------------------------
     precision: str = _f("fp32", "fp32 everywhere, or fp16/bf16 autocast with fp32 master weights "
                                 "(fp16 uses a gradient scaler; it needs a GPU); 'auto': bf16 on a CPU "
@@ -266,6 +277,7 @@ FLOAT_BOUNDS = [("temperature", 0.01, 10.0, "from 0.01 to 10 (evaluation has a g
                 ("clip_eps_high", 0.0, 10.0, "> 0 and at most 10"),
                 ("kl_coef", 0.0, 100.0, "from 0 to 100"),
                 ("entropy_coef", 0.0, 100.0, "from 0 to 100"),
+                ("entropy_target", 0.0, 20.0, "from 0 to 20 nats"),
                 ("entropy_weight_max", 0.0, 100.0, "> 0 and at most 100"),
                 ("lora_alpha", 0.0, 1e6, "> 0 and at most 1e6")]
 
@@ -292,12 +304,14 @@ PRESETS: dict[str, dict[str, Any]] = {
     # of the T4's 15; 10,240 prompts are ~1.3 h at the plan's rate, a 2x margin on its
     # assumptions inside a 3-hour session (lesson 7 prints the arithmetic). It carries what
     # lesson 7's ablation kept: the shaped reward (with the binary one, groups that all fail
-    # give no gradient at the start). Not DAPO's dynamic sampling: on the main job it changed no
-    # seed's result; turn it on (dynamic_sampling=True) if zero_std_frac climbs late in a run.
-    # No entropy bonus: lesson 8 found the seed's inverse-variance bonus did not help, and no
-    # ablation here supports it. kl_coef 0: a KL term costs a reference forward per step,
-    # lesson 8's KL track found no difference in reward with it, and DAPO drops it; add one
-    # (kl_coef=0.04, DeepSeekMath's) if the model's language degrades.
+    # give no gradient at the start). Not dynamic sampling: a version capped at two rounds left
+    # every main-job seed's pass rate where it was; turn it on (dynamic_sampling=True) if
+    # zero_std_frac climbs late in a run. No entropy bonus: lesson 8 found the seed's
+    # inverse-variance bonus did not help, and no ablation here supports it. kl_coef 0 is a
+    # cost decision with thin evidence either way: the term costs a reference forward per step
+    # and DAPO drops it; lesson 8's KL track is too short to test it, and lesson 7's one probe
+    # with it kept the policy exploring where its twin without it collapsed (6.3). Add it
+    # (kl_coef=0.04, DeepSeekMath's) if distinct completions collapse or the language degrades.
     "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
                target_chars=64, reward="shaped", prompts_per_step=16,
                group_size=8, grad_accum=8, max_new_tokens=64, lr=1e-5, weight_decay=0.01,

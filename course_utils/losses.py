@@ -193,6 +193,40 @@ def entropy_weight(rewards: torch.Tensor, mode: str, coef: float, max_weight: fl
     raise ValueError(f"unknown entropy bonus mode {mode!r}")
 
 
+class AdaptiveEntropy:
+    """An entropy-bonus weight that holds the policy's entropy near a target (Skywork-OR1's
+    adaptive entropy control, arXiv 2505.22312, sec. 3.2; TRL 1.16's ``use_adaptive_entropy``):
+
+        c_{k+1} = clip(c_k + delta * sign(H_target - H_k), 0, c_max)
+        weight_k = c_k if H_k < H_target else 0
+
+    where H_k is the mean entropy per completion token of step k's batch. While the policy is
+    more random than the target the bonus is off and c drifts down; once it falls below, c grows
+    by ``delta`` a step until the bonus pushes entropy back up. Unlike a constant bonus it does
+    not fight the early, wanted drop from the base model's entropy."""
+
+    def __init__(self, target: float, delta: float, max_weight: float):
+        self.target, self.delta, self.max_weight = target, delta, max_weight
+        self.coef = 0.0
+        self.entropy: float | None = None   # the last step's mean entropy (None before any)
+
+    def weight(self) -> float:
+        return self.coef if self.entropy is not None and self.entropy < self.target else 0.0
+
+    def observe(self, entropy: float) -> None:
+        if not math.isfinite(entropy):
+            return
+        self.entropy = entropy
+        step = self.delta if entropy < self.target else -self.delta
+        self.coef = min(max(self.coef + step, 0.0), self.max_weight)
+
+    def state_dict(self) -> dict:
+        return dict(coef=self.coef, entropy=self.entropy)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.coef, self.entropy = state["coef"], state["entropy"]
+
+
 class RewardAwareKL:
     """A KL coefficient that reacts to the batch (a course extension for the frontier-researcher
     track, not part of GRPO): beta_t = beta * clip((v_avg / v_t) * (g_{t-1} / g_avg), 1/r, r).
@@ -232,27 +266,32 @@ class RewardAwareKL:
 
 def aggregate(per_token: torch.Tensor, mask: torch.Tensor, loss_type: str,
               max_completion_length: int | None = None, total_sequences: int | None = None,
-              total_tokens: int | float | None = None) -> torch.Tensor:
+              total_tokens: int | float | None = None, micro_batches: int = 1) -> torch.Tensor:
     """Average a per-token loss into a scalar, in one of the ways the literature does it.
 
     "grpo":  1/N sum_i 1/|o_i| sum_t l_it   (mean per sequence, then over sequences; DeepSeekMath)
-    "bnpo", "dapo": sum_it l_it / sum_i |o_i|   (every token weighs the same; DAPO)
+    "dapo":  sum_it l_it / sum_i |o_i|   (every token of the batch weighs the same; DAPO)
+    "bnpo":  this micro-batch's own token mean, divided by ``micro_batches`` (TRL's "bnpo")
     "dr_grpo": sum_it l_it / (N * max_completion_length)   (a constant; Dr. GRPO)
 
     "grpo" gives each token of a short completion more weight than a token of a long one,
     which is the length bias Dr. GRPO points out. For gradient accumulation, pass the whole
-    batch's ``total_sequences`` / ``total_tokens`` so the micro-batch losses sum to the
-    full-batch loss exactly. (TRL's "dapo" counts tokens over all processes, "bnpo" per
-    process; in one process they are the same.)
+    batch's ``total_sequences`` / ``total_tokens`` so that "grpo", "dapo" and "dr_grpo"
+    micro-batch losses sum to the full-batch loss exactly. "bnpo" is TRL 1.16's: each
+    micro-batch (on each process) is normalized by its *own* token count and the results are
+    averaged, so with one micro-batch it is "dapo", and with several of unequal token counts it
+    is not the full batch's token mean: a token in a micro-batch with fewer tokens weighs more.
     """
     mask = mask.to(per_token.dtype)
     n = per_token.shape[0] if total_sequences is None else total_sequences
     if loss_type == "grpo":
         per_sequence = (per_token * mask).sum(-1) / mask.sum(-1).clamp(min=1)
         return per_sequence.sum() / n
-    if loss_type in ("bnpo", "dapo"):
+    if loss_type == "dapo":
         tokens = mask.sum() if total_tokens is None else total_tokens
         return (per_token * mask).sum() / max(float(tokens), 1.0)
+    if loss_type == "bnpo":
+        return (per_token * mask).sum() / mask.sum().clamp(min=1.0) / micro_batches
     if loss_type == "dr_grpo":
         length = max_completion_length if max_completion_length is not None else per_token.shape[-1]
         return (per_token * mask).sum() / (n * length)
@@ -270,7 +309,8 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
               eps_high: float = 0.2, ref_logprobs: torch.Tensor | None = None, beta: float = 0.0,
               entropy: torch.Tensor | None = None, entropy_weight: float = 0.0,
               max_completion_length: int | None = None, total_sequences: int | None = None,
-              total_tokens: int | float | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+              total_tokens: int | float | None = None,
+              micro_batches: int = 1) -> tuple[torch.Tensor, dict[str, float]]:
     """The GRPO objective, negated into a loss (DeepSeekMath eq. 3, plus the options above).
 
     per-token loss = -min(rho A, clip(rho) A) + beta * KL_k3 - entropy_weight * H
@@ -297,5 +337,5 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
         if entropy_weight > 0:
             per_token = per_token - entropy_weight * entropy
     loss = aggregate(per_token, mask, loss_type, max_completion_length, total_sequences,
-                     total_tokens)
+                     total_tokens, micro_batches)
     return loss, stats

@@ -218,7 +218,40 @@ def sharp_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -
     return [sharp_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
 
 
-REWARDS = {"binary": binary_reward, "shaped": shaped_reward, "sharp": sharp_reward}
+def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
+    """Partial credit in [0, 1] whose digit part counts whole units of the digit sum:
+
+    graded = 1/2 * length credit + 1/2 * digit credit, where the length credit is
+    ``shaped_score``'s and
+
+    digit credit = 0                          if the digits add up to 0 (none, or only zeros)
+                                              and S > 0,
+                   1 / (1 + |digit_sum - S|)  otherwise.
+
+    Why not ``shaped_score``'s relative digit credit: against S = 12 it pays a reply with no
+    digit 1/2 and the one-digit reply "8" 3/4, so a policy that copies one digit into a
+    template has earned most of the credit and two-digit targets look nearly solved. Counted in
+    whole units, "8" earns 1/5, "9" 1/4 and any digits that add up to 12 earn 1: every step
+    towards the second digit is worth more than all the steps before it. A reply without digits
+    earns no digit credit, so it is never a safe harbour. The score is 1 exactly when
+    ``binary_reward`` is 1.
+    """
+    length_credit = 1.0 / (1.0 + abs(result.n_chars - target_chars) / max(target_chars, 1))
+    counts = result.digit_sum > 0 or target_digit_sum == 0
+    digit_credit = 1.0 / (1.0 + abs(result.digit_sum - target_digit_sum)) if counts else 0.0
+    return 0.5 * length_credit + 0.5 * digit_credit
+
+
+def graded_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """Partial credit in whole units of the digit sum, none without a digit (``graded_score``)."""
+    completions = _completions(completions)
+    n = len(completions)
+    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
+    return [graded_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+
+
+REWARDS = {"binary": binary_reward, "shaped": shaped_reward, "sharp": sharp_reward,
+           "graded": graded_reward}
 
 
 def get_reward_fn(name: str):

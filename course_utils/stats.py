@@ -160,6 +160,12 @@ class PairedComparison:
                 f"({self.n - 1} df), sign-flip p = {self.p_value:.3g} (its smallest possible with "
                 f"{self.n} seeds: {2.0 ** (1 - self.n):.3g})")
         if self.significant:
+            if self.p_value > 1 - self.level:
+                # the t-interval assumes roughly normal differences; the sign-flip test assumes
+                # only that each is as likely either sign, and with few seeds it cannot reject
+                return head + ("; the t-interval excludes 0: a difference if the per-seed "
+                               "differences are roughly normal, which the sign-flip test, "
+                               f"p = {self.p_value:.3g}, cannot confirm with {self.n} seeds")
             return head + "; the t-interval excludes 0: a difference"
         return head + (f"; the t-interval includes 0: no difference detected (this design detects "
                        f"about {fmt.format(self.detectable).lstrip('+')} at 80% power, estimated "

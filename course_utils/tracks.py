@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from . import data, models, train
+from . import data, models, stats, train
 from .config import load_config, smoke_mode
 
 # The cpu preset as these tracks were run (the shaped reward, no dynamic sampling: the preset
@@ -85,16 +85,73 @@ def mean_std(values: list[float]) -> str:
 
 
 def differs(a: list[float], b: list[float]) -> str:
-    """A plain verdict for two small sets of seeds: a difference is called only when the means
-    are further apart than two standard errors of their difference (Welch)."""
-    if len(a) < 2 or len(b) < 2:
+    """The verdict on arm ``a`` against arm ``b``, run on the same seeds in the same order: a
+    paired comparison (``course_utils.stats.paired``), every seed's difference shown, a
+    t-interval on n - 1 degrees of freedom, the exact sign-flip p-value, and beside a "no
+    difference detected" the difference the seeds could have detected."""
+    if len(a) != len(b):
+        raise ValueError(f"paired arms need the same seeds; got {len(a)} and {len(b)} values")
+    if len(a) < 2:
         return "too few seeds to tell"
-    se = math.sqrt(statistics.variance(a) / len(a) + statistics.variance(b) / len(b))
-    gap = statistics.mean(a) - statistics.mean(b)
-    if se == 0:
-        return "identical" if gap == 0 else "different"
-    return (f"difference {gap:+.3f} = {gap / se:+.1f} standard errors: " +
-            ("a real difference" if abs(gap) > 2 * se else "no difference detected"))
+    return stats.paired(a, b).verdict()
+
+
+# Every comparison a track's report prints, as data, so a stored report's verdicts can be
+# recomputed from its result.json alone (``rerender_verdicts``): (label, (key, arm a), (key, arm b)).
+JOINT, ALONE = "joint (retriever learns)", "generator only (uniform retriever)"
+RETRIEVER_COST = "the retriever's update took"
+VERDICTS: dict[str, list[tuple[str, tuple[str, str], tuple[str, str]]]] = {
+    "grouping": [("per-prompt vs whole batch", ("final_reward", "per-prompt groups (GRPO)"),
+                  ("final_reward", "whole batch (the seed)"))],
+    "entropy": [("inverse variance vs none (final reward)",
+                 ("final_reward", "inverse variance (1e-3 / Var)"), ("final_reward", "none")),
+                ("inverse variance vs constant (final reward)",
+                 ("final_reward", "inverse variance (1e-3 / Var)"), ("final_reward", "constant 0.05")),
+                ("constant vs none (final reward)", ("final_reward", "constant 0.05"),
+                 ("final_reward", "none"))],
+    "kl": [("reward-aware vs constant KL (Δ log-likelihood)", ("delta_loglik", "reward-aware KL 0.04"),
+            ("delta_loglik", "constant KL 0.04")),
+           ("reward-aware KL vs plain (final reward)", ("final_reward", "reward-aware KL 0.04"),
+            ("final_reward", "plain GRPO (no KL)"))],
+    "retrieval": [("joint vs generator only, reward", ("final_reward", JOINT), ("final_reward", ALONE)),
+                  ("joint vs generator only, P(passing example)", ("p_helpful", JOINT),
+                   ("p_helpful", ALONE))],
+}
+
+
+def verdict_lines(track: str, result: dict) -> str:
+    """The report's comparison lines for ``track``, from its result (``VERDICTS``)."""
+    lines = [f"{label}: {differs(result[ka][a], result[kb][b])}"
+             for label, (ka, a), (kb, b) in VERDICTS[track]]
+    return "\n\n".join(lines)
+
+
+def rerender_verdicts(track: str, folder: Path) -> str:
+    """Rewrite the comparison lines of a stored report from its result.json: every line that
+    starts with one of the track's labels is replaced, in place, by the recomputed lines."""
+    folder = Path(folder)
+    result = json.loads((folder / "result.json").read_text())
+    labels = tuple(f"{label}:" for label, _, _ in VERDICTS[track])
+    if track == "retrieval":   # its cost figure shared the old comparison line; now its own
+        labels += (RETRIEVER_COST,)
+    lines = (folder / "report.md").read_text().split("\n")
+    kept, at = [], None
+    for line in lines:
+        if line.startswith(labels):
+            at = len(kept) if at is None else at
+            continue
+        kept.append(line)
+    if at is None:
+        raise ValueError(f"{folder / 'report.md'} has no comparison line of the {track} track")
+    # the blank lines that separated the old comparison lines collapse to one
+    while at < len(kept) - 1 and kept[at] == "" and kept[at + 1] == "":
+        del kept[at]
+    new = verdict_lines(track, result).split("\n")
+    if track == "retrieval":   # its cost figure shared the old comparison line
+        new += ["", f"{RETRIEVER_COST} {result['retriever_ms']:.1f} ms a step"]
+    report = "\n".join(kept[:at] + new + kept[at:])
+    (folder / "report.md").write_text(report)
+    return report
 
 
 def plot_curves(arms: dict[str, list[Path]], keys: list[tuple[str, str]], path: Path,
@@ -209,7 +266,7 @@ def grouping(seeds: list[int], out: Path) -> dict:
               f"\n\n**Real runs** (SmolLM2, {len(seeds)} seeds): held-out greedy mean reward after training\n\n"
               "| arm | reward |\n|---|---|\n" +
               "\n".join(f"| {arm} | {mean_std(v)} |" for arm, v in final.items()) +
-              f"\n\nper-prompt vs whole batch: {differs(*final.values())}\n")
+              "\n\n" + verdict_lines("grouping", dict(final_reward=final)) + "\n")
     result = dict(exact=exact, final_reward=final)
     write(out, report, result)
     return result
@@ -241,10 +298,7 @@ def entropy(seeds: list[int], out: Path) -> dict:
               f"held-out greedy reward after training, token entropy over the last 4 steps "
               f"({len(seeds)} seeds):\n\n| arm | steps to threshold, per seed | final reward | "
               "late entropy |\n|---|---|---|---|\n" + "\n".join(rows) +
-              f"\n\ninverse variance vs none (final reward): "
-              f"{differs(final['inverse variance (1e-3 / Var)'], final['none'])}\n\n"
-              f"inverse variance vs constant (final reward): "
-              f"{differs(final['inverse variance (1e-3 / Var)'], final['constant 0.05'])}\n")
+              "\n\n" + verdict_lines("entropy", dict(final_reward=final)) + "\n")
     result = dict(steps_to_threshold={k: [None if math.isinf(x) else x for x in v] for k, v in steps.items()},
                   final_reward=final, late_entropy=ent)
     write(out, report, result)
@@ -305,11 +359,8 @@ def kl_schedule(seeds: list[int], out: Path) -> dict:
               f"more forgotten), and the falsifier: held-out prompts where the arm's greedy "
               f"completion scores lower than plain GRPO's ({len(seeds)} seeds):\n\n"
               "| arm | final reward | Δ log-likelihood of facts | prompts worse than plain GRPO |\n"
-              "|---|---|---|---|\n" + "\n".join(rows) +
-              f"\n\nreward-aware vs constant KL (Δ log-likelihood): "
-              f"{differs(knowledge['reward-aware KL 0.04'], knowledge['constant KL 0.04'])}\n\n"
-              f"reward-aware KL vs plain (final reward): "
-              f"{differs(final['reward-aware KL 0.04'], final['plain GRPO (no KL)'])}\n")
+              "|---|---|---|---|\n" + "\n".join(rows) + "\n\n" +
+              verdict_lines("kl", dict(final_reward=final, delta_loglik=knowledge)) + "\n")
     result = dict(final_reward=final, delta_loglik=knowledge, falsifier=falsifier, reference_loglik=reference)
     write(out, report, result)
     return result
@@ -569,8 +620,10 @@ def retrieval_run(seed: int, learn_retriever: bool, steps: int) -> dict:
         ro = rollout.rollout(model, tokenizer, texts, group_size=1, max_new_tokens=cfg.max_new_tokens,
                              eos_ids=eos, temperature=cfg.temperature, generator=gen)
         r = train.score([p for p in batch for _ in range(G)], ro.texts, cfg.reward)["rewards"]
-        # one baseline per prompt, over its G rollouts whatever document each retrieved: it does
-        # not depend on the sampled document, so the retriever's part stays unbiased
+        # one baseline per prompt, over its G rollouts whatever document each retrieved. The
+        # group mean includes each rollout's own reward, so both parts shrink by (G-1)/G (the
+        # exact table's "group mean" bias); it is not a per-document baseline, which would
+        # remove most of the retriever's signal. Leave-one-out would be unbiased.
         advantages, _ = losses.group_advantages(r, G)
         optimizer.zero_grad(set_to_none=True)
         logprobs, _ = rollout.completion_logprobs(model, ro.prompt_ids, ro.prompt_mask, ro.completion_ids,
@@ -624,7 +677,7 @@ def retrieval(seeds: list[int], out: Path) -> dict:
     alone with a uniform retriever, over seeds."""
     exact = exact_retrieval(batches=2_000 if smoke_mode() else 20_000)
     steps = 2 if smoke_mode() else 8
-    arms = {"joint (retriever learns)": True, "generator only (uniform retriever)": False}
+    arms = {JOINT: True, ALONE: False}
     runs = {}
     for arm, learn in arms.items():
         runs[arm] = []
@@ -654,9 +707,8 @@ def retrieval(seeds: list[int], out: Path) -> dict:
               f"with the document its retriever drew; {len(seeds)} seeds):\n\n"
               f"| arm | training reward, last {last} steps | P(retriever picks the passing example) at the end | seconds per step |\n"
               f"|---|---|---|---|\n{rows}\n\n"
-              f"joint vs generator only, reward: {differs(final[joint], final[alone])}; "
-              f"P(passing example): {differs(helpful[joint], helpful[alone])}; "
-              f"the retriever's update took {retriever_ms:.1f} ms a step\n\n"
+              + verdict_lines("retrieval", dict(final_reward=final, p_helpful=helpful)) +
+              f"\n\n{RETRIEVER_COST} {retriever_ms:.1f} ms a step\n\n"
               f"Reusing answers across documents on the real model: scored under every document, the "
               f"last batch's answers give cross-document weights whose effective sample size is "
               f"{mean_std(ess)} of the batch (mean over documents, per run)\n\n"

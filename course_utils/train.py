@@ -30,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from . import checkpoint, cpu, data, interrupt, losses, models, plan, rewards
+from . import checkpoint, cpu, curriculum, data, interrupt, losses, models, plan, rewards
 from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
 from .rollout import completion_logprobs, concat_rollouts, rollout
 
@@ -146,6 +146,8 @@ class Policy:
     ref_model: typing.Any = None
     kl_schedule: typing.Any = None   # losses.RewardAwareKL when cfg.kl_schedule == "reward_aware"
     sampler: typing.Any = None       # a bf16 copy that samples, for bf16 on a CPU (sampling_model)
+    entropy_control: typing.Any = None   # losses.AdaptiveEntropy when cfg.entropy_bonus == "adaptive"
+    priority: typing.Any = None      # curriculum.TargetPriority when cfg.target_sampling == "prioritized"
     counters: dict = field(default_factory=lambda: {"nonfinite_skipped": 0})
 
 
@@ -301,8 +303,11 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
             s = {k: acc.gather(v.to(acc.device)).cpu() for k, v in s.items()}
         advantages, zero_std = losses.group_advantages(s["rewards"], G, cfg.advantage_center,
                                                        cfg.advantage_scale)
-        ent_weight = losses.entropy_weight(s["rewards"], cfg.entropy_bonus, cfg.entropy_coef,
-                                           cfg.entropy_weight_max)
+        ent_weight = policy.entropy_control.weight() if policy.entropy_control else \
+            losses.entropy_weight(s["rewards"], cfg.entropy_bonus, cfg.entropy_coef,
+                                  cfg.entropy_weight_max)
+        if policy.priority:   # the running pass rate per target, from the groups trained on
+            policy.priority.observe(local if W == 1 else prompts, s["passed"], G)
         mine = slice(rank * per_process * G, (rank + 1) * per_process * G)
         advantages_local = advantages[mine].to(ro.completion_ids.device)
     mask = ro.completion_mask  # the tokens that get a loss
@@ -355,7 +360,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                     ref_logprobs=None if ref_logprobs is None else ref_logprobs[rows],
                     beta=beta, entropy=entropy, entropy_weight=ent_weight,
                     max_completion_length=cfg.max_new_tokens, total_sequences=n_seq,
-                    total_tokens=n_tok)
+                    total_tokens=n_tok, micro_batches=cfg.grad_accum * W)
             if not torch.isfinite(loss):
                 step_ok = False
                 break
@@ -386,16 +391,22 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                 policy.counters["nonfinite_skipped"] += 1
     model.eval()
     policy.scheduler.step()
+    if policy.entropy_control and "entropy" in stats_sum:
+        policy.entropy_control.observe(stats_sum["entropy"])
     if W > 1:  # the loss and the token statistics are each process's share of a global sum
         shares = acc.reduce(torch.tensor([loss_total, *stats_sum.values()], device=acc.device), "sum")
         loss_total, stats_sum = float(shares[0]), dict(zip(stats_sum, shares[1:].tolist()))
     t_end = time.perf_counter()
     lengths = ro.completion_mask.sum(-1).float()
+    # two-digit targets (10 and up) need more than a digit copied from the instruction
+    two_digit = torch.tensor([p.target_digit_sum >= 10 for p in (local if W == 1 else prompts)
+                              for _ in range(G)])
     total_tokens = (int(ro.prompt_mask.sum()) + int(lengths.sum())) * W
     return dict(
         reward_mean=float(s["rewards"].mean()), reward_std=float(s["rewards"].std()),
         pass_length=float(s["length_ok"].mean()), pass_digits=float(s["digits_ok"].mean()),
-        pass_both=float(s["passed"].mean()), chars_abs_error=float(s["chars_abs_error"].mean()),
+        pass_both=float(s["passed"].mean()), samples_two_digit=int(two_digit.sum()),
+        passes_two_digit=int(s["passed"][two_digit].sum()), chars_abs_error=float(s["chars_abs_error"].mean()),
         adv_mean=float(advantages.mean()), adv_std=float(advantages.std()),
         adv_abs_mean=float(advantages.abs().mean()), zero_std_frac=zero_std / len(prompts),
         groups_sampled=groups_sampled * W, sampling_rounds=rounds, first_round_pass_both=first_pass,
@@ -523,7 +534,10 @@ def setup(cfg: Config, init_from: str | Path | None = None) -> Policy:
                   scheduler=scheduler, accelerator=accelerator,
                   eos_ids=models.eos_token_ids(accelerator.unwrap_model(model), tokenizer),
                   generator=generator, ref_model=ref_model, sampler=sampler,
-                  kl_schedule=losses.RewardAwareKL(cfg.kl_coef) if cfg.kl_schedule == "reward_aware" else None)
+                  kl_schedule=losses.RewardAwareKL(cfg.kl_coef) if cfg.kl_schedule == "reward_aware" else None,
+                  entropy_control=losses.AdaptiveEntropy(cfg.entropy_target, cfg.entropy_coef,
+                                                         cfg.entropy_weight_max)
+                  if cfg.entropy_bonus == "adaptive" else None)
 
 
 def batch_for_step(step: int, prompts: list[data.Prompt], cfg: Config) -> list[data.Prompt]:
@@ -557,6 +571,8 @@ def _trainer_state(policy: Policy, step: int, generators: torch.Tensor) -> dict:
                 scheduler=policy.scheduler.state_dict(), generator=generators,
                 torch_rng=torch.get_rng_state(), counters=dict(policy.counters),
                 kl_schedule=policy.kl_schedule.state_dict() if policy.kl_schedule else None,
+                entropy_control=policy.entropy_control.state_dict() if policy.entropy_control else None,
+                priority=policy.priority.state_dict() if policy.priority else None,
                 config=policy.cfg.to_dict())
 
 
@@ -701,6 +717,8 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
         policy.counters.update(state["counters"])
         if policy.kl_schedule:
             policy.kl_schedule.load_state_dict(state["kl_schedule"])
+        if policy.entropy_control:
+            policy.entropy_control.load_state_dict(state["entropy_control"])
         start_step = state["step"]
         if main:
             log.truncate_after(start_step)
@@ -708,6 +726,10 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
 
     train_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=False)
     eval_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=True)
+    if cfg.target_sampling == "prioritized":
+        policy.priority = curriculum.TargetPriority(train_prompts)
+        if state:
+            policy.priority.load_state_dict(state["priority"])
     model = policy.model
 
     if "before" not in summary and main:
@@ -723,7 +745,9 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
                disable=not (progress and main))
     for step in bar:
         stop.deferring = True   # a signal from here on ends this step first (see interrupt.py)
-        metrics = grpo_step(policy, batch_for_step(step, train_prompts, cfg),
+        batch = policy.priority.batch(cfg.seed, step, cfg.prompts_per_step) if policy.priority \
+            else batch_for_step(step, train_prompts, cfg)
+        metrics = grpo_step(policy, batch,
                             refill=lambda k, step=step: refill_batch(step, k, train_prompts, cfg))
         record = dict(step=step + 1, epoch=step // cfg.steps_per_epoch, **metrics)
         if cfg.eval_every and (step + 1) % cfg.eval_every == 0 and step + 1 < total and main:

@@ -126,13 +126,21 @@ print("\nOne prompt, as the model sees it:\n" + train_prompts[0].text)
 # whether the numbers are right:
 #
 # - **The temperature $\tau$.** Completions are sampled from $\mathrm{softmax}(z/\tau)$, so they
-#   must be scored under the same distribution. Scored at $\tau = 1$, the ratio
-#   $\pi_\theta/\pi_{\text{old}}$ would not even start at 1.
+#   must be scored under the same distribution. With one update per batch the ratio is
+#   $\exp(\log\pi_\theta - \mathrm{sg}[\log\pi_\theta])$, exactly 1 whatever $\tau$ the scoring
+#   uses, so nothing *looks* wrong; what is wrong is the gradient, which is then the gradient of
+#   another policy than the one that sampled. With several updates, $\pi_{\text{old}}$ comes from
+#   the sampler at $\tau$, and scoring at $\tau = 1$ also puts the ratio off 1 from the start.
 # - **Left padding.** A batch of prompts of different lengths is left-padded, so that every row
 #   ends where its completion starts. The attention mask keeps real tokens from attending to the
 #   padding, and the **position ids** must start at 0 on each row's first real token:
-#   `attention_mask.cumsum(-1) - 1`, clamped at 0. (The transformers version pinned here derives
-#   them from the mask when you omit them; older versions did not, so pass them.)
+#   `attention_mask.cumsum(-1) - 1`, clamped at 0. Whether omitting them does harm depends on
+#   the model. transformers numbers positions `0, 1, 2, ...` from the left edge when you omit
+#   them, padding included, whatever the mask says. A rotary-embedding model (Qwen2, Llama,
+#   SmolLM2) only ever sees the *difference* of two positions in attention, so a row shifted by
+#   its padding gets the same logits up to rounding; a model with absolute position embeddings
+#   (GPT-2, the `gpt2-rtx4070` preset's model) gives the shifted row different logits. Pass them
+#   always: the exercise's checker scores a GPT-2-style model too.
 # - **The completion mask.** Completions are right-padded after their end-of-sequence token.
 #   Those positions are not part of the completion and must get log-probability 0.
 #
@@ -259,10 +267,14 @@ print(f"largest |sampled - rescored| over all tokens: {(sampled_logprobs - resco
 # not on lesson 7's T4), so the backward runs over
 # micro-batches of whole groups, and the gradients accumulate in `.grad`.
 #
-# Accumulation gives the full batch's gradient only if every micro-batch's loss is a share of the
-# *full* batch's sum: divide by the whole batch's counts ($N$ sequences, or all its completion
-# tokens), then add. Normalizing each micro-batch by its own token count and averaging is the
-# natural-looking mistake. It weights a token by the size of the micro-batch it landed in.
+# Accumulation gives the full batch's gradient when the micro-batch losses add up to the full
+# batch's loss. Dividing each micro-batch's sum by the whole batch's counts ($N$ sequences, or
+# all its completion tokens) and adding is exact for every aggregation. Averaging micro-batch
+# *means* is exact only where each micro-batch's mean has the same denominator: for 'grpo' with
+# micro-batches of equal numbers of sequences (the per-sequence means are averaged either way;
+# TRL and CS336 accumulate like this), but not for 'dapo', where a micro-batch's own token
+# count varies with its completions' lengths. Normalizing each micro-batch by its own token
+# count and averaging (TRL's 'bnpo') weights a token by how few tokens its micro-batch holds.
 #
 # ### Exercise 6.3 — the micro-batched backward
 #

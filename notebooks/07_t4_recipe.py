@@ -32,7 +32,8 @@
 # - how to survive a Colab disconnect (checkpoints, on Google Drive if you like, and resume);
 # - how to read a run: the curves, and held-out completions before and after;
 # - why a run stops learning (reward hacking, entropy collapse, groups without signal), how to
-#   see it in the metrics, and which fixes an ablation over three seeds supports (section 6).
+#   see it in the metrics, and what an ablation over three seeds can and cannot say about the
+#   fixes (section 6).
 #
 # Runtime: *Runtime > Change runtime type > T4 GPU*. On a CPU (and in CI) this notebook runs a
 # shrunk version of every step with a tiny model, so it can be read and tested anywhere.
@@ -79,10 +80,12 @@ if GPU and "T4" not in GPU:
 # decay 0.01, gradient clipping at 1.0, gradient accumulation, fp16 autocast with fp32 master
 # weights and gradient checkpointing. Two things of the seed's are left out: its entropy bonus
 # scaled by the inverse reward variance (a course extension, not part of GRPO, which lesson 8's
-# ablation did not find helpful), and a KL term: `kl_coef=0`, because it costs a reference
-# forward per step, lesson 8's KL track found no difference in reward with it over its short
-# runs, and DAPO drops it as well. If the model's language degrades over a long run, `kl_coef=0.04` (DeepSeekMath's value)
-# is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
+# ablation did not find helpful), and a KL term: `kl_coef=0`. That is a decision on cost with
+# thin evidence either way: the term costs a reference forward per step and DAPO drops it,
+# lesson 8's KL track is too short to test whether it helps, and the one probe in section 6.3
+# that had it kept the policy exploring where its twin without it collapsed onto one sentence.
+# If distinct completions collapse or the model's language degrades over a long run,
+# `kl_coef=0.04` (DeepSeekMath's value) is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
 # prompts, fp32, three steps.
 
 # %%
@@ -421,11 +424,18 @@ for key, value in mine.items():
 # **A reward that pays a pass clearly more than any near miss** (`reward="sharp"`,
 # `course_utils/rewards.py`): two thirds of the shaped score plus one third of the binary one.
 # Until some completion passes, this is the shaped reward times 2/3, and group standardization
-# removes a common factor, so the early run is exactly the shaped run (a test checks that the
-# advantages are equal). Once passes turn up, each one earns a third of the whole score more
-# than the best near miss: a large advantage inside its group, where the shaped reward gave it
-# almost none. It was the course's first answer to the near-miss template, and it is *not* in
-# the recipe: the ablation in 6.3 found it no better than the shaped reward on any seed. The
+# removes a common factor, so the advantages are the shaped reward's up to the small constant
+# added to each group's standard deviation to keep it finite (`tests/test_fixes.py` checks the
+# equality with that constant made tiny). With the training constant the two differ in the
+# last digits, sampling then amplifies the difference, and the two runs part: compare the
+# first-sampled-pass column of the two dynamic-sampling arms in 6.3. Once passes turn up, what
+# the bonus changes depends on the group. In a group of G - 1 *identical* near misses and one
+# pass there are only two values, and standardization gives the pass the same advantage
+# whatever the gap between them: the sharp reward changes nothing there. Where the near
+# misses differ among themselves, the bonus makes the pass stand out further from their
+# spread. It was the course's first answer to the near-miss template, and it is *not* in
+# the recipe: in the ablation of 6.3 it did no better than the shaped reward on any seed and
+# worse on two. The
 # `cpu-shaped` run it was designed against used the same shaped reward as today's recipe; what
 # differs is its budget (half the learning rate, a looser token cap, fewer steps), and with the
 # budget changed the shaped reward's near misses turned into passes. A fix aimed at a cause you guessed is the usual
@@ -446,12 +456,19 @@ for key, value in mine.items():
 # its signal only when its G completions score exactly alike, which happens once the policy has
 # settled on one answer. Until then a run with dynamic sampling is the run without it, step for
 # step (`tests/test_fixes.py` checks this), and after that the extra groups it drew did not
-# change where any seed ended. Where it earns its cost is a reward that scores whole groups
-# alike from the start, as the binary reward does.
+# change any seed's held-out pass rate. Two caveats before reading that as "dynamic sampling
+# does nothing": the arm was capped at two sampling rounds and a batch still short was padded
+# with groups without signal, which is not DAPO's method (DAPO resamples until the batch is
+# full of groups with signal), and three seeds detect only large effects (6.3). Where it should
+# earn its cost is a reward that scores whole groups alike from the start, as the binary
+# reward does.
 #
 # **The budget.** What the recipe does carry is a budget with room to learn: against the
-# `cpu-shaped` run, twice the learning rate (6e-5), a tighter cap of 24 new tokens (room for 32
-# characters, about 8 tokens, and cheap first steps), and half as many steps again. The
+# `cpu-shaped` run, twice the learning rate, a tighter cap on new tokens (room for 32
+# characters, about 8 tokens, and cheap first steps), and half as many steps again (the
+# `cpu` preset's values are in `course_utils/config.py`). Those three changes were made
+# together, on one seed, and have not been ablated one at a time, so which of them matters is
+# not known. The
 # ablation's "first sampled pass" column shows why the steps matter: no run sampled a single
 # passing completion in its first ten steps, and GRPO can only reinforce what it has sampled.
 # The same settings make the run fragile: in one run with a
@@ -465,20 +482,26 @@ for key, value in mine.items():
 # seed; section 6.3 shows how each run ended.
 #
 # **Under dynamic sampling, read the right pass rate.** The batch trained on is *selected*:
-# once the policy passes on some prompts, the groups kept are the ones where it sometimes
-# passes, so the batch's pass rate overstates the policy's. `first_round_pass_both` is the pass
-# rate of the first round, sampled before any selection.
+# groups whose G completions all score alike are dropped, and that drops groups that all pass
+# as well as groups that all fail, so the batch's pass rate can sit above the policy's or below
+# it. `first_round_pass_both` is the pass rate of the first round, sampled before any
+# selection: the policy's own.
 #
 # ### 6.3 The ablation
 #
 # Each arm is the main job with the levers its name adds, with the same steps and the same
 # held-out prompts, over seeds 0, 1 and 2 (the table lists the seeds each arm has been run with;
 # an arm with one seed says what can happen, not how often). The arm with both levers is the
-# course's previous recipe, run for the same number of steps. Reproduce with
+# course's previous recipe, run for the same number of steps. The arms share seeds, so they
+# share prompts, targets and, until they part, samples: each seed's *difference* is what
+# carries the evidence, and the lines under the table compare the arms seed by seed
+# (`course_utils.stats.paired`). One more caveat: seeds 0, 1 and 2 are also the seeds the
+# recipe's settings were chosen on, so the table describes these seeds; it does not test the
+# recipe on seeds that had no say in it. Reproduce with
 # `python -m course_utils.ablation --seeds 0 1 2 --out notebooks/results/ablation` (each run
 # about as long as the main job; finished runs are reused, so an interrupted command resumes).
 #
-# Held-out greedy evaluation after training (64 prompts built from 10 distinct held-out snippets, each with its own drawn digit-sum target; mean ± std over the seeds listed, the value alone for one seed; every arm is the `cpu` preset with the changes its name says; first sampled pass: the first training step whose first round of samples held a completion passing both constraints; seconds: wall time of a run, evaluation included, not a speed comparison, since some runs shared the machine with other work; groups sampled: over the whole run, the cost that does compare):
+# Held-out greedy evaluation after training (64 prompts built from 10 distinct held-out snippets, each with its own drawn digit-sum target; mean ± std over the seeds listed, the value alone for one seed; every arm is the `cpu` preset with the changes its name says; first sampled pass: the first training step whose first round of samples held a completion passing both constraints; seconds: wall time of a run, evaluation included, not a speed comparison, since some runs shared the machine with other work; groups sampled: over the whole run, the cost that does compare). Each arm against the full recipe, seed by seed (`course_utils.stats.paired`: 95% t-interval on n - 1 degrees of freedom, exact sign-flip test, and the smallest difference the seeds could detect):
 #
 # | arm | seeds | both constraints, per seed | first sampled pass, step per seed | both constraints | both, one-digit targets | both, two-digit targets | length | digit sum | distinct completions | seconds | groups sampled |
 # |---|---|---|---|---|---|---|---|---|---|---|---|
@@ -486,26 +509,38 @@ for key, value in mine.items():
 # | with dynamic sampling | 0, 1, 2 | 65.6%, 7.8%, 78.1% | 36, 26, 11 | 50.5% ± 37.5% | 70.3% ± 51.5% | 11.1% ± 19.2% | 69.8% ± 52.3% | 70.8% ± 6.5% | 18.7 ± 18.5 | 801 | 283 |
 # | with dynamic sampling and the sharp reward | 0, 1, 2 | 65.6%, 0.0%, 65.6% | 25, 44, 11 | 43.8% ± 37.9% | 65.9% ± 57.1% | 0.0% ± 0.0% | 43.8% ± 37.9% | 75.5% ± 3.3% | 14.7 ± 5.9 | 782 | 284 |
 #
-# - with dynamic sampling vs the full recipe, held-out pass rate (both): difference +0.000 = +0.0 standard errors: no difference detected
-# - with dynamic sampling and the sharp reward vs the full recipe, held-out pass rate (both): difference -0.068 = -0.2 standard errors: no difference detected
+# - with dynamic sampling minus the full recipe, held-out pass rate (both), seeds 0, 1, 2: per-seed differences [+0.0%, +0.0%, +0.0%]: identical on every seed
+# - with dynamic sampling minus the full recipe, two-digit targets, seeds 0, 1, 2: per-seed differences [+0.0%, +0.0%, +0.0%]: identical on every seed
+# - with dynamic sampling and the sharp reward minus the full recipe, held-out pass rate (both), seeds 0, 1, 2: per-seed differences [+0.0%, -7.8%, -12.5%], mean -6.8%, 95% t-interval [-22.5%, +8.9%] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 19.6% at 80% power, estimated from the observed spread)
+# - with dynamic sampling and the sharp reward minus the full recipe, two-digit targets, seeds 0, 1, 2: per-seed differences [+0.0%, +0.0%, -33.3%], mean -11.1%, 95% t-interval [-58.9%, +36.7%] (2 df), sign-flip p = 1 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 59.6% at 80% power, estimated from the observed spread)
 #
 # ![ablation: training curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/ablation/curves.png)
 #
 # Read the per-seed column before the means. Seeds of one arm end in very different places, a
-# template that passes every one-digit target or almost nothing, and three seeds cannot
-# separate arms whose results swing that much: the lines under the table apply lesson 8's rule
-# (a difference is called only beyond two standard errors). What the table does say:
+# template that passes every one-digit target or almost nothing. Compared unpaired, as two
+# clouds of three results, arms that swing that much could hide a gap of tens of points;
+# paired, the swing between seeds cancels and what is left is each seed's difference. Even so,
+# three seeds are few: an exact sign-flip test cannot give a p-value below its floor with three
+# seeds (the lines under the table print it), and the t-interval on 2 degrees of freedom is
+# wide, so each "no difference detected" comes with the difference the design could have
+# detected. What the table does say:
 #
 # - **The recipe passes half of the held-out prompts on average, not on every seed.** Two
-#   seeds settle on a template that passes every one-digit target; the third has only begun to
-#   pass when its budget ends. That spread is the honest size of what 15 minutes on a CPU buy.
-# - **Dynamic sampling changed no seed's result.** With it, every seed ended at exactly the
-#   held-out pass rate it reached without it. Until some group scores its G completions alike,
-#   the two runs are the same run (on one seed that never happened, and the runs are identical
-#   to the last step); after that, the extra groups it drew (the groups-sampled column) did not
-#   move the outcome. So the recipe leaves it out.
-# - **Neither did the sharp reward.** Added on top of dynamic sampling, it did no better than
-#   dynamic sampling alone on any seed.
+#   seeds settle on a template that passes every one-digit target; the third passes few
+#   prompts when its budget ends, though it sampled its first pass earlier than one of the
+#   other two (the first-sampled-pass column): it found passes and did not settle on them.
+#   That spread is the honest size of what 15 minutes on a CPU buy.
+# - **Dynamic sampling, as run here, changed no seed's held-out pass rate.** With it, every
+#   seed ended at exactly the pass rate it reached without it, though not always with the same
+#   policy (the distinct-completions column differs on some seeds). Until some group scores
+#   its G completions alike, the two runs are the same run (on one seed that never happened,
+#   and the runs are identical to the last step); after that, the extra groups it drew (the
+#   groups-sampled column) did not move the pass rate. The recipe leaves it out because it
+#   showed no gain for its cost, not because three seeds of a capped version show it useless.
+# - **The sharp reward changed two seeds' results, both for the worse.** Added on top of
+#   dynamic sampling, it did no better than dynamic sampling alone on any seed and worse on
+#   two; three seeds cannot call that a difference (the interval under the table), and
+#   nothing in it argues for the bonus.
 # - **A two-digit target is met only by accident.** Writing a number whose digits add up to the
 #   target is a skill none of these runs found: every pass of a two-digit target, where there
 #   is any, writes the same fixed number, whose digits happen to add up to one of the targets,
@@ -518,8 +553,10 @@ for key, value in mine.items():
 # course's earlier, shorter recipe (the sharp reward) missed were used to probe the levers left
 # out of it: each row is the `cpu` preset with the changes listed (the sharp reward among them),
 # on one seed, most of them stopped by hand once their ending was clear (`notebooks/results/probes/`; the probes ran
-# two at a time on one thread each, so their results can differ in the last digits from a run
-# on two threads, and their seconds are not comparable). "How it ended" is read from the last
+# two at a time on one thread each, and their seconds are not comparable. A different thread
+# count changes floating-point sums in the last digits, and in a *sampled* run that is enough:
+# one flipped token sends the run down another path, so a probe rerun on two threads need not
+# end where its row says). "How it ended" is read from the last
 # 5 steps by a fixed rule (`course_utils.ablation.probe_outcome`): *collapsed onto one
 # sentence* when at most a quarter of a batch's completions are distinct and the entropy is at
 # most 0.2 nats; *filling the token cap* when nine in ten completions are cut off at
@@ -539,15 +576,15 @@ for key, value in mine.items():
 # one seed, sharper sampling made the policy commit early to a sentence that ignores the digit
 # target, and a committed policy has nothing left to explore. On the other it made the policy
 # commit to short fragments that the 24-token cap cuts at about 32 characters, with the target
-# digit among them: that run has the highest held-out pass rate on this page, and its text is
-# noise. A higher learning rate committed earlier still, to a sentence without the digit; two
+# digit among them: that run passes more held-out prompts than two of the recipe's three seeds
+# in 6.3, and its text is noise. A higher learning rate committed earlier still, to a sentence without the digit; two
 # updates per batch with clip-higher was on its way there when it was stopped (its entropy and
 # its share of distinct completions were falling). The KL term and overlong filtering kept the
 # policy exploring, and had found few or no passes when they were stopped. Every lever moves
 # the point at which the policy commits; none decides *what* it commits to. That is the honest state of this recipe at this budget, and the way to read any
 # single-seed result, including your own.
 #
-# ### 6.4 What the fixed run learned, read honestly
+# ### 6.4 What the main job learned, read honestly
 #
 # Look at the main job's completions in section 5 and at the distinct-completion count in 6.1.
 # The stored run's policy writes a template: one sentence with a slot for the target digit,
@@ -559,11 +596,25 @@ for key, value in mine.items():
 # whose digits happen to add up to one of the possible targets, written for every two-digit
 # prompt (the ablation's table says how often). GRPO optimized exactly the reward it was given, and this is
 # what the reward asks for. Nor is the stored run the rule: the ablation's full-recipe row gives
-# all three seeds, and one of them has barely begun to pass when its budget ends. To get
+# all three seeds, and one of them passes few prompts when its budget ends. To get
 # continuations that also obey the rule, the reward has to say so: a KL term to the pre-trained
 # model (`kl_coef`), a second reward for staying on topic, or a rule that cannot be met by a
 # fixed sentence. That is the honest summary of reward design: the checker is the
 # specification, and a policy will find every gap in it.
+#
+# **Levers aimed at the template, not yet measured.** The diagnosis above points at three
+# causes: entropy gone before the two-digit targets were ever solved, samples spread evenly
+# over targets that are already solved, and a partial credit that pays a one-digit reply for a
+# two-digit target most of the digit credit. The library has one lever for each, tested for
+# its rule and for an exact resume, and none of them has been run on the main job yet:
+# `entropy_bonus="adaptive"` (Skywork-OR1's adaptive entropy control: a bonus whose weight
+# grows while the entropy is below `entropy_target` and shrinks above it),
+# `target_sampling="prioritized"` (target digit sums drawn with more weight the less often
+# they pass, `course_utils/curriculum.py`) and `reward="graded"` (the digit credit counted in
+# whole units of the digit sum, nothing for a reply without digits). The experiment that would
+# earn any of them a place in the recipe is the one this section has been asking for: choose
+# on tuning seeds, freeze the recipe, then report it once on fresh seeds, paired against the
+# preset, each lever also removed on its own.
 #
 # The next cell re-runs the ablation: shrunk to seconds on the tiny model in smoke mode, and
 # with real weights only if you set `RUN_EXPERIMENTS = True` (it is the main job several times

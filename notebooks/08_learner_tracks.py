@@ -218,9 +218,11 @@ experiment(tracks.entropy, "entropy")
 # | constant 0.05 | never, 8, 7 | 0.640 ± 0.043 | 5.491 ± 0.253 |
 # | inverse variance (1e-3 / Var) | never, never, never | 0.574 ± 0.046 | 5.972 ± 0.278 |
 #
-# inverse variance vs none (final reward): difference -0.006 = -0.2 standard errors: no difference detected
+# inverse variance vs none (final reward): per-seed differences [+0.017, -0.041, +0.004], mean -0.006, 95% t-interval [-0.082, +0.069] (2 df), sign-flip p = 1 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.094 at 80% power, estimated from the observed spread)
 #
-# inverse variance vs constant (final reward): difference -0.065 = -1.8 standard errors: no difference detected
+# inverse variance vs constant (final reward): per-seed differences [-0.024, -0.112, -0.061], mean -0.065, 95% t-interval [-0.176, +0.045] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.137 at 80% power, estimated from the observed spread)
+#
+# constant vs none (final reward): per-seed differences [+0.041, +0.071, +0.065], mean +0.059, 95% t-interval [+0.019, +0.099] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval excludes 0: a difference if the per-seed differences are roughly normal, which the sign-flip test, p = 0.25, cannot confirm with 3 seeds
 #
 # ![entropy: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/entropy/curves.png)
 #
@@ -234,8 +236,12 @@ experiment(tracks.entropy, "entropy")
 # by *how large* it was cannot be told from them. The arm that would separate the two, a constant
 # weight set to the dynamic arm's mean weight (logged per step as `entropy_weight`), is not in
 # the table; it is the first experiment under "Your turn" below. The constant bonus ended
-# highest (0.640 against 0.581), but with three seeds
-# that gap is 1.6 standard errors: no difference detected. A T4 run
+# highest (0.640 against 0.581), above no bonus on
+# every one of the 3 seeds; paired, the difference is
+# +0.059, 95% t-interval [+0.019, +0.099]. The t-interval excludes 0, but it leans on the per-seed
+# differences being roughly normal, and the sign-flip test, which does not, cannot go below its
+# floor with three seeds (the report's last line): a lead to test on more seeds, not a finding.
+# A T4 run
 # (640 steps, Qwen2.5-0.5B) would show whether the extra entropy pays off late, when plain
 # GRPO's entropy collapses (lesson 7, section 6.1, shows such a collapse in its stored runs).
 
@@ -273,9 +279,9 @@ experiment(tracks.kl_schedule, "kl")
 # | constant KL 0.04 | 0.597 ± 0.057 | 0.005 ± 0.004 | 37 of 96 |
 # | reward-aware KL 0.04 | 0.612 ± 0.010 | 0.001 ± 0.002 | 32 of 96 |
 #
-# reward-aware vs constant KL (Δ log-likelihood): difference -0.004 = -1.4 standard errors: no difference detected
+# reward-aware vs constant KL (Δ log-likelihood): per-seed differences [+0.002, -0.003, -0.010], mean -0.004, 95% t-interval [-0.018, +0.011] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.018 at 80% power, estimated from the observed spread)
 #
-# reward-aware KL vs plain (final reward): difference +0.031 = +1.2 standard errors: no difference detected
+# reward-aware KL vs plain (final reward): per-seed differences [-0.005, +0.016, +0.083], mean +0.031, 95% t-interval [-0.083, +0.145] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.142 at 80% power, estimated from the observed spread)
 #
 # ![kl: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/kl/curves.png)
 #
@@ -334,7 +340,7 @@ experiment(tracks.grouping, "grouping")
 # | per-prompt groups (GRPO) | 0.581 ± 0.045 |
 # | whole batch (the seed) | 0.630 ± 0.075 |
 #
-# per-prompt vs whole batch: difference -0.050 = -1.0 standard errors: no difference detected
+# per-prompt vs whole batch: per-seed differences [-0.104, -0.012, -0.034], mean -0.050, 95% t-interval [-0.168, +0.069] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.148 at 80% power, estimated from the observed spread)
 #
 # ![grouping: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/grouping/curves.png)
 #
@@ -349,8 +355,9 @@ experiment(tracks.grouping, "grouping")
 # per prompt without the std (Dr. GRPO) keeps the low noise *and* the exact direction (its average
 # is exactly (G-1)/G of the gradient; the tests check the 8/7 rescaling). On the real task the
 # learning curves show **no difference detected**: whole-batch normalization ended at
-# 0.630 ± 0.075, per-prompt groups at 0.581 ± 0.045
-# (1.0 standard errors apart). What a T4 run would add: openwebtext prompts, whose
+# 0.630 ± 0.075, per-prompt groups at 0.581 ± 0.045 (whole batch
+# minus per-prompt, paired by seed: +0.050, 95% t-interval [-0.069, +0.168]); three seeds could have detected a
+# difference of about 0.148, so smaller effects remain possible. What a T4 run would add: openwebtext prompts, whose
 # difficulty varies far more than the course's snippets, and enough steps for a bias of a few
 # percent in direction to compound.
 
@@ -389,7 +396,7 @@ experiment(tracks.grouping, "grouping")
 # **Falsifiers.** (2) fails if a per-document baseline leaves the retriever's part unbiased;
 # (4) fails on real completions if the cross-document weights degenerate (an effective sample
 # size near one answer); (5) fails if the joint retriever's probability of the passing example
-# is not above the frozen uniform retriever's by more than two standard errors.
+# is not above the frozen uniform retriever's (paired by seed, a t-interval above 0).
 
 # %%
 experiment(tracks.retrieval, "retrieval")
@@ -433,7 +440,11 @@ experiment(tracks.retrieval, "retrieval")
 # | joint (retriever learns) | 0.633 ± 0.045 | 0.181 ± 0.040 | 14.385 ± 1.625 |
 # | generator only (uniform retriever) | 0.617 ± 0.022 | 0.250 ± 0.000 | 15.673 ± 0.349 |
 #
-# joint vs generator only, reward: difference +0.016 = +0.6 standard errors: no difference detected; P(passing example): difference -0.069 = -3.0 standard errors: a real difference; the retriever's update took 0.9 ms a step
+# joint vs generator only, reward: per-seed differences [+0.054, +0.034, -0.039], mean +0.016, 95% t-interval [-0.105, +0.137] (2 df), sign-flip p = 0.75 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.151 at 80% power, estimated from the observed spread)
+#
+# joint vs generator only, P(passing example): per-seed differences [-0.036, -0.113, -0.058], mean -0.069, 95% t-interval [-0.168, +0.029] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.123 at 80% power, estimated from the observed spread)
+#
+# the retriever's update took 0.9 ms a step
 #
 # Reusing answers across documents on the real model: scored under every document, the last batch's answers give cross-document weights whose effective sample size is 0.621 ± 0.100 of the batch (mean over documents, per run)
 #
@@ -465,9 +476,10 @@ experiment(tracks.retrieval, "retrieval")
 # batch, with answers of at most 24 tokens (lesson 4 shows why longer answers would shrink it).
 # (5) is **not supported**. After 8 steps the joint retriever gave the
 # passing example a probability of 0.18 ± 0.04, *below* the uniform
-# 0.25 (-3.0 standard errors), and the reward showed no
-# difference (joint 0.633 ± 0.045, generator alone 0.617 ± 0.022,
-# 0.6 standard errors). The last table says why: for this 135M generator the
+# 0.25 on every one of the 3 seeds (paired difference
+# -0.07, 95% t-interval [-0.17, +0.03]: not above 0, and with three seeds not a detected drop either), and
+# the reward showed no difference (joint 0.633 ± 0.045, generator alone
+# 0.617 ± 0.022, paired difference +0.016, 95% t-interval [-0.105, +0.137]). The last table says why: for this 135M generator the
 # documents hardly mattered (mean reward 0.545 to 0.578 by document, and the
 # passing example was not the best), so each run's retriever followed the noise of its own
 # rollouts: the weak-signal regime of (3). The joint update's cost was as the split predicts:
@@ -479,11 +491,11 @@ experiment(tracks.retrieval, "retrieval")
 # %% [markdown]
 # ## What the evidence says
 #
-# | track | hypothesis | evidence (CPU, 12 steps, 3 seeds) |
+# | track | hypothesis | evidence (CPU; tracks 1 and 3-5 train 12 steps on 3 seeds, track 2 times a trained model and trains nothing, track 6 trains 8 steps on 3 seeds) |
 # |---|---|---|
 # | 1. base model | learns the unstated rule, more slowly | moves towards it (miss 104 to 32 characters); "more slowly" not established |
 # | 2. int8 + KV cache | int8 costs little quality; the cache matters more | the cache matters more (3.2x vs 1.7x on latency); the quality cost was *not* small (miss 14.7 → 30.4 characters) |
-# | 3. entropy bonus | the variance-scaled bonus converges faster | not supported: slowest to the threshold, final reward no difference (possibly confounded by the weight's size) |
+# | 3. entropy bonus | the variance-scaled bonus converges faster | not supported: slowest to the threshold, final reward no difference detected (possibly confounded by the weight's size); the constant bonus ended higher on every one of the 3 seeds, a lead for more seeds |
 # | 4. reward-aware KL | keeps knowledge at no cost in reward | untestable at this length (nothing was forgotten); no cost on average, but worse on 32 of 96 prompts |
 # | 5. grouping | per-prompt: lower variance; std division biases the direction | holds exactly (0.81-0.83 vs 0.96 noise; 0.067 direction error); on the real task no difference detected |
 # | 6. retrieval | the gradient splits exactly; a per-document baseline is for the generator only; the retriever learns the helpful document cheaply | the split and the baselines hold exactly; reusing answers across documents cuts the retriever's noise (1.21 → 0.41); on the real task (8 steps) the retriever did not learn the passing example (0.18 ± 0.04), because the documents hardly mattered to the generator |

@@ -40,10 +40,28 @@ def _seeds(values: list, fmt: str = "") -> str:
     return ", ".join(words[:-1]) + " and " + words[-1] if len(words) > 1 else words[0]
 
 
-def _z(a: list[float], b: list[float]) -> str:
-    """The difference of two arms' means in standard errors (Welch), as tracks.differs."""
-    se = (statistics.variance(a) / len(a) + statistics.variance(b) / len(b)) ** 0.5
-    return f"{(statistics.mean(a) - statistics.mean(b)) / se:.1f}"
+def _paired(a: list[float], b: list[float], fmt: str = "+.3f") -> str:
+    """Arm a minus arm b over shared seeds, as tracks.differs computes it (course_utils.stats):
+    '+0.059, 95% t-interval [+0.019, +0.099]'."""
+    from course_utils import stats
+
+    cmp = stats.paired(a, b)
+    low, high = cmp.interval
+    return f"{cmp.mean:{fmt}}, 95% t-interval [{low:{fmt}}, {high:{fmt}}]"
+
+
+def _detectable(a: list[float], b: list[float], fmt: str = ".3f") -> str:
+    """The smallest difference the seeds could detect (80% power, from the observed spread)."""
+    from course_utils import stats
+
+    return f"{stats.paired(a, b).detectable:{fmt}}"
+
+
+def _same_sign(a: list[float], b: list[float]) -> str:
+    """'every one of the 3' seeds when a - b has one sign on all of them, else 'k of n'."""
+    diffs = [x - y for x, y in zip(a, b)]
+    sign = max(sum(d > 0 for d in diffs), sum(d < 0 for d in diffs))
+    return f"every one of the {len(diffs)}" if sign == len(diffs) else f"{sign} of the {len(diffs)}"
 
 
 def plan_figures() -> dict[str, str]:
@@ -130,7 +148,8 @@ def track_figures() -> dict[str, str]:
         "entropy.late_none": f"{statistics.mean(late['none']):.1f}",
         "entropy.final_constant": f"{statistics.mean(rewards['constant 0.05']):.3f}",
         "entropy.final_none": f"{statistics.mean(rewards['none']):.3f}",
-        "entropy.z_constant_none": _z(rewards["constant 0.05"], rewards["none"]),
+        "entropy.diff_constant_none": _paired(rewards["constant 0.05"], rewards["none"]),
+        "entropy.seeds_constant_none": _same_sign(rewards["constant 0.05"], rewards["none"]),
         # 4. KL schedule
         "kl.delta_plain": _mean_std(kl_delta["plain GRPO (no KL)"], "+.3f"),
         "kl.final_aware": f"{statistics.mean(kl_reward['reward-aware KL 0.04']):.3f}",
@@ -152,7 +171,8 @@ def track_figures() -> dict[str, str]:
         "grouping.cosine_grpo": f"{grpo['cosine']:.3f}",
         "grouping.final_batch": _mean_std(g_final["whole batch (the seed)"], ".3f"),
         "grouping.final_group": _mean_std(g_final["per-prompt groups (GRPO)"], ".3f"),
-        "grouping.z": _z(g_final["whole batch (the seed)"], g_final["per-prompt groups (GRPO)"]),
+        "grouping.diff": _paired(g_final["whole batch (the seed)"], g_final["per-prompt groups (GRPO)"]),
+        "grouping.detectable": _detectable(g_final["whole batch (the seed)"], g_final["per-prompt groups (GRPO)"]),
         **retrieval_figures(),
     }
 
@@ -178,10 +198,11 @@ def retrieval_figures() -> dict[str, str]:
         "retrieval.steps": f"{r['steps']}",
         "retrieval.p_joint": _mean_std(r["p_helpful"][joint], ".2f"),
         "retrieval.p_uniform": f"{1 / len(r['documents']):.2f}",
-        "retrieval.z_p": _z(r["p_helpful"][joint], r["p_helpful"][alone]),
+        "retrieval.diff_p": _paired(r["p_helpful"][joint], r["p_helpful"][alone], "+.2f"),
+        "retrieval.seeds_p": _same_sign(r["p_helpful"][joint], r["p_helpful"][alone]),
         "retrieval.final_joint": _mean_std(r["final_reward"][joint], ".3f"),
         "retrieval.final_alone": _mean_std(r["final_reward"][alone], ".3f"),
-        "retrieval.z_reward": _z(r["final_reward"][joint], r["final_reward"][alone]),
+        "retrieval.diff_reward": _paired(r["final_reward"][joint], r["final_reward"][alone]),
         "retrieval.document_rewards": f"{min(by_document):.3f} to {max(by_document):.3f}",
         "retrieval.ess": _mean_std(r["cross_document_ess"], ".2f"),
         "retrieval.retriever_ms": f"{r['retriever_ms']:.1f} ms",

@@ -184,7 +184,19 @@ def test_aggregation_variants_by_hand(loss_type, expected):
     assert got.item() == pytest.approx(expected)
 
 
-@pytest.mark.parametrize("loss_type", ["grpo", "bnpo", "dr_grpo"])
+def test_bnpo_is_trls_mean_of_micro_batch_token_means():
+    """TRL 1.16's "bnpo": each micro-batch divided by its own token count, then by the number of
+    micro-batches. With unequal token counts that is not the batch's token mean ("dapo")."""
+    parts = [losses.aggregate(PER_TOKEN[i:i + 1], MASK[i:i + 1], "bnpo", 8, total_sequences=2,
+                              total_tokens=int(MASK.sum()), micro_batches=2) for i in range(2)]
+    assert sum(parts).item() == pytest.approx(((1 + 2 + 3) / 3 + 4 / 1) / 2)
+    dapo = losses.aggregate(PER_TOKEN, MASK, "dapo", 8)
+    assert dapo.item() == pytest.approx((1 + 2 + 3 + 4) / 4) != pytest.approx(sum(parts).item())
+    # one micro-batch: the two are the same
+    assert losses.aggregate(PER_TOKEN, MASK, "bnpo", 8).item() == pytest.approx(dapo.item())
+
+
+@pytest.mark.parametrize("loss_type", ["grpo", "dapo", "dr_grpo"])
 def test_micro_batches_with_global_normalizers_sum_to_the_full_batch(loss_type):
     full = losses.aggregate(PER_TOKEN, MASK, loss_type, 8)
     parts = sum(losses.aggregate(PER_TOKEN[i:i + 1], MASK[i:i + 1], loss_type, 8,

@@ -116,3 +116,28 @@ def test_a_bare_string_of_completions_is_refused_not_scored_per_character():
     from course_utils import rewards as R
     with pytest.raises(TypeError, match="single string"):
         R.binary_reward(None, "abc", target_chars=[1, 1, 1], target_digit_sum=[0, 0, 0])
+
+
+def test_graded_reward_counts_whole_units_and_pays_nothing_without_digits():
+    """The digit part: 1 / (1 + |digit sum - S|), and 0 when the digits add up to 0 (none)."""
+    def graded(text, L=10, S=12):
+        return rewards.graded_reward(["p"], [text], target_chars=[L], target_digit_sum=[S])[0]
+
+    assert graded("abcdefgh39") == 1.0                                    # 10 chars, 3 + 9 = 12
+    assert graded("abcdefghi8") == pytest.approx(0.5 + 0.5 / 5)           # sum 8: four units short
+    assert graded("abcdefghi9") == pytest.approx(0.5 + 0.5 / 4)
+    assert graded("abcdefghij") == pytest.approx(0.5)                     # no digit: no digit credit
+    assert graded("abcdefghi0") == pytest.approx(0.5)                     # only zeros: the same
+    assert graded("abcdefghi0", S=0) == 1.0                               # unless the target is 0
+    assert graded("abcdefgh39x") == pytest.approx(0.5 / (1 + 1 / 10) + 0.5)
+    # the order that matters for two-digit targets: a second digit towards 12 beats any one digit
+    assert graded("abcdefghi8") < graded("abcdefghi9") < graded("abcdefgh48x")
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=st.text(), target_chars=st.integers(1, 200), target_sum=st.integers(0, 300))
+def test_graded_reward_is_one_exactly_when_binary_is(text, target_chars, target_sum):
+    kw = dict(target_chars=[target_chars], target_digit_sum=[target_sum])
+    b = rewards.binary_reward(["p"], [text], **kw)[0]
+    g = rewards.graded_reward(["p"], [text], **kw)[0]
+    assert 0.0 < g <= 1.0 and (g == 1.0) == (b == 1.0)

@@ -69,9 +69,14 @@ def test_verdict_names_the_detectable_difference_and_shows_every_seed():
     for d in cmp.diffs:
         assert f"{d:+.3f}" in text
     assert "2 df" in text
-    clear = stats.paired([1.0, 1.1, 0.9, 1.05], [0.0, 0.05, -0.1, 0.02])
+    clear = stats.paired([1.0, 1.1, 0.9, 1.05, 0.97, 1.2], [0.0, 0.05, -0.1, 0.02, 0.1, 0.0])
     assert clear.verdict().endswith("excludes 0: a difference")
     assert stats.paired([1, 2], [1, 2]).verdict().endswith("identical on every seed")
+    # three seeds, all differences positive: the t-interval excludes 0, but the sign-flip test
+    # cannot go below 0.25, and the verdict says the call rests on normality
+    few = stats.paired([1.0, 1.1, 0.95], [0.0, 0.05, 0.02]).verdict()
+    assert "excludes 0: a difference if the per-seed differences are roughly normal" in few
+    assert "cannot confirm with 3 seeds" in few
 
 
 def test_interval_by_hand():

@@ -22,10 +22,30 @@ def test_exact_grouping_matches_what_can_be_derived_by_hand():
     assert dr["noise_to_signal"] < batch["noise_to_signal"]
 
 
-def test_the_verdict_needs_two_standard_errors():
+def test_the_verdict_is_paired_by_seed():
     assert "no difference detected" in tracks.differs([1.0, 1.2, 0.8], [1.1, 0.9, 1.0])
-    assert "a real difference" in tracks.differs([1.0, 1.01, 0.99], [2.0, 2.01, 1.99])
+    # arms that differ by the same amount on every seed: unpaired, the seeds' spread would hide it
+    a = [0.2, 0.9, 0.5, 0.1, 0.7, 0.4]
+    text = tracks.differs([x + 0.05 + 0.001 * i for i, x in enumerate(a)], a)
+    assert text.endswith("excludes 0: a difference") and "per-seed differences" in text
     assert tracks.differs([1.0], [2.0]) == "too few seeds to tell"
+    with pytest.raises(ValueError, match="same seeds"):
+        tracks.differs([1.0, 2.0], [1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize("track", sorted(tracks.VERDICTS))
+def test_stored_track_verdicts_are_recomputed_from_their_results(track, tmp_path):
+    """Each stored report's comparison lines are what the paired helper says about its stored
+    per-seed values: re-rendering changes nothing, and is idempotent."""
+    import shutil
+    from pathlib import Path
+
+    stored = Path(__file__).resolve().parents[1] / "notebooks" / "results" / "tracks" / track
+    copy = tmp_path / track
+    shutil.copytree(stored, copy)
+    assert tracks.rerender_verdicts(track, copy) == (stored / "report.md").read_text()
+    assert tracks.rerender_verdicts(track, copy) == (stored / "report.md").read_text()
+    assert "standard errors" not in (stored / "report.md").read_text()   # no unpaired verdict left
 
 
 def test_steps_to_threshold_uses_the_moving_average(tmp_path):

@@ -318,3 +318,15 @@ def test_an_apple_gpu_is_not_taken_for_a_cpu(monkeypatch):
     assert train.effective_precision(load_config("smoke", precision="auto")) == "fp32"
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
     assert train.runs_on_cpu(load_config("smoke"))
+
+
+def test_adaptive_entropy_and_prioritized_targets_resume_exactly(resume_pair):
+    """Both carry state from step to step (the entropy coefficient, the pass rate per target):
+    a run stopped and resumed must draw the same batches and weights as one that never stopped."""
+    (ra, rb), (a, b) = resume_pair(entropy_bonus="adaptive", entropy_coef=0.01, entropy_target=20.0,
+                                   target_sampling="prioritized")
+    weights = [r["entropy_weight"] for r in ra]
+    assert weights[0] == 0.0 and weights[1] == pytest.approx(0.01) and weights[2] == pytest.approx(0.02)
+    for key in ("entropy_weight", "reward_mean", "samples_two_digit", "loss"):
+        assert [r[key] for r in ra] == [r[key] for r in rb], key
+    assert all(torch.equal(a[k], b[k]) for k in a)

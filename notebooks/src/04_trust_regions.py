@@ -208,6 +208,15 @@ largest_pi = min(float(trust.bandit_log_probs(s).exp().max()) for s in starts)
 print(f"every start puts at least {largest_pi:.3f} of its probability on one of the two worst arms")
 for lr in (10.0, 100.0):
     print(f"plain gradient ascent with lr {lr:g} on seed 0: {ascend(starts[0], vanilla, lr=lr)[0]} steps")
+spread = torch.tensor([0.3, -0.2, 0.1, 0.4])
+print(f"plain gradient ascent with lr 100 from a spread-out start: {ascend(spread, vanilla, lr=100.0)[0]} step(s)")
+for label, theta in (("spread out", spread), ("seed 0, near-deterministic", starts[0])):
+    g, nat = vanilla(theta), natural(theta)
+    pi = trust.bandit_log_probs(theta).exp()
+    var_r = float((pi * reward ** 2).sum() - (pi * reward).sum() ** 2)
+    print(f"{label:27s}: |g| = {float(g.norm()):.2e}, |F^-1 g| = {float(nat.norm()):.4f}, "
+          f"g^T F^-1 g = {float(g @ nat):.2e}, Var_pi(r) = {var_r:.2e}")
+    assert abs(float(g @ nat) - var_r) < 1e-3 * var_r   # damping 1e-8 moves it a little
 
 fig, ax = plt.subplots(figsize=(6.5, 3.2))
 for method, style in (("vanilla", "-"), ("natural", "--")):
@@ -219,18 +228,31 @@ assert all(n < v for (n, _), (v, _) in zip(results["natural"], results["vanilla"
 
 # %% [markdown]
 # Plain gradient ascent can match the natural gradient on this start only with a learning rate
-# many times larger (the last lines), which would be far too large once the policy is spread
-# out: the step size it needs depends on where the policy is. The natural gradient's does not,
-# because it measures the step in the units of the distribution.
+# many times larger. With exact gradients on this bandit such a rate is not punished from a
+# spread-out start (the cell's next line: it reaches the threshold at once), so the lesson is
+# not that a large rate fails. It is that the rate plain ascent needs depends on where the
+# policy is, by the ratio of the gradient lengths in the last lines. The natural gradient's
+# *direction and length* do not: $F^{-1}g$ is the same vector at both starts, the reward gaps.
+# What depends on the policy is the KL its step costs, to second order
+# $	frac12\,\mathrm{lr}^2\,g^	op F^{-1} g$, and for the softmax bandit
+# $g^	op F^{-1} g = \mathrm{Var}_\pi(r)$ exactly (the cell checks it): near a deterministic
+# policy the same natural step is a far smaller move in distribution. Section 3 shows what that
+# does to a step scaled to a fixed KL.
 #
 # ### Invariance
 #
-# The same geometry makes the natural gradient independent of the parametrization. Write the
-# logits as $\theta = A\varphi$ for an invertible matrix $A$. The policy is the same, but the
-# plain gradient with respect to $\varphi$ is $A^\top g$, so a step in $\varphi$ moves $\theta$ by
+# The same geometry makes the natural gradient's step independent of the parametrization, exactly
+# for a linear one and to first order for any smooth one. Write the logits as
+# $\theta = A\varphi$ for an invertible matrix $A$. The policy is the same, but the plain
+# gradient with respect to $\varphi$ is $A^\top g$, so a step in $\varphi$ moves $\theta$ by
 # $AA^\top g$: a different policy. For the natural gradient, $F_\varphi = A^\top F_\theta A$, and the
-# step in $\varphi$ moves $\theta$ by exactly $F_\theta^{-1} g$. The cell takes one step of each
-# kind in both parametrizations and compares the resulting policies.
+# step in $\varphi$ moves $\theta$ by exactly $F_\theta^{-1} g$. For a nonlinear map
+# $\theta = h(\varphi)$ the same algebra holds with the Jacobian $J$ of $h$ in place of $A$, so
+# the two natural steps agree in direction, but a finite step in $\varphi$ also bends through
+# $h$'s curvature: they differ at second order in the step size, the plain steps at first.
+# The cell takes one step of each kind in both parametrizations, for a linear map and for
+# $h(\varphi) = \varphi + \tfrac12\varphi^3$ at two step sizes, and compares the resulting
+# policies.
 
 # %%
 theta = torch.tensor([0.5, -1.0, 0.2, 1.0])
@@ -245,6 +267,24 @@ nat = trust.kl(trust.bandit_log_probs(theta + step_size * natural_gradient(fishe
 print(f"KL between the policies after one step in theta and one step in phi:\n"
       f"   plain gradient:   {float(plain):.2e}\n   natural gradient: {abs(float(nat)):.0e} (rounding)")
 assert nat < 1e-12 < plain
+
+# a nonlinear map: theta = phi + phi^3 / 2, inverted elementwise by Newton's method
+cubic = lambda p: p + 0.5 * p ** 3                     # noqa: E731
+phi = theta.clone()
+for _ in range(50):
+    phi = phi - (cubic(phi) - theta) / (1 + 1.5 * phi ** 2)
+by_cubic = lambda p: trust.bandit_log_probs(cubic(p))  # noqa: E731
+g_cubic = trust.exact_gradient(by_cubic, phi, reward)
+nat_theta = natural_gradient(fisher_matrix(trust.bandit_log_probs, theta), g_theta, 0.0)
+nat_cubic = natural_gradient(fisher_matrix(by_cubic, phi), g_cubic, 0.0)
+gaps = {}
+for size in (0.5, 0.05):
+    gaps[size] = [float(trust.kl(trust.bandit_log_probs(theta + size * a), by_cubic(phi + size * b)))
+                  for a, b in ((g_theta, g_cubic), (nat_theta, nat_cubic))]
+    print(f"theta = phi + phi^3/2, step {size}: KL between the two policies, plain {gaps[size][0]:.2e}, "
+          f"natural {gaps[size][1]:.2e}")
+# a tenth of the step: the plain gap shrinks about 100-fold (first order), the natural one about 10,000-fold
+assert gaps[0.5][0] / gaps[0.05][0] < 300 < gaps[0.5][1] / gaps[0.05][1]
 
 # %% [markdown]
 # ## 3. TRPO's step, and where its model breaks
@@ -263,11 +303,18 @@ for label, theta in (("spread out", torch.tensor([0.3, -0.2, 0.1, 0.4])), ("near
     F, g = fisher_matrix(trust.bandit_log_probs, theta), vanilla(theta)
     delta = trust.kl_step(F, g, 0.01, damping=1e-8)
     true = trust.kl(trust.bandit_log_probs(theta), trust.bandit_log_probs(theta + delta))
-    print(f"{label:18s}: 1/2 d^T F d = {float(0.5 * delta @ F @ delta):.4f}, true KL = {float(true):.4f}")
+    direction = natural_gradient(F, g, 1e-8)
+    print(f"{label:18s}: |F^-1 g| = {float(direction.norm()):.3f}, g^T F^-1 g = {float(g @ direction):.2e}, "
+          f"|delta| = {float(delta.norm()):.2f}; 1/2 d^T F d = {float(0.5 * delta @ F @ delta):.4f}, "
+          f"true KL = {float(true):.4f}")
 
 # %% [markdown]
-# Near a deterministic policy $F$ is nearly singular, $F^{-1}g$ is long, and the quadratic model
-# promises a small KL for a step that is not small at all. TRPO therefore shrinks the step by a
+# The natural direction $F^{-1}g$ has the same length at both starts (the reward gaps, section
+# 2). What falls near a deterministic policy is $g^\top F^{-1} g$, the quadratic model's KL per
+# unit step, so the factor $\sqrt{2\varepsilon / g^\top F^{-1} g}$ that scales the step to the
+# KL budget grows, and $\delta$ becomes long: the printed $|\delta|$. Along such a long step the
+# quadratic model no longer describes the KL, and it promises a small KL for a step that is not
+# small at all. TRPO therefore shrinks the step by a
 # line search until the true KL (estimated on samples) is within bounds and the objective
 # improved. For a language model the step is also expensive: $F$ has one row per parameter, so
 # TRPO never forms it and solves $F x = g$ by conjugate gradients, each iteration a
@@ -375,8 +422,8 @@ for size in (0.0, 0.1, 0.3, 1.0):
 #
 # ## 5. PPO's clip, and GRPO's
 #
-# PPO enforces the trust region per token, without a Fisher matrix or a line search: it clips
-# the ratio in the surrogate and takes the pessimistic minimum,
+# PPO keeps the trust region's intent per token, without a Fisher matrix or a line search: it
+# clips the ratio in the surrogate and takes the pessimistic minimum,
 #
 # $$\ell_t = \min\big(\rho_t A,\ \mathrm{clip}(\rho_t, 1-\varepsilon_{\text{low}},
 # 1+\varepsilon_{\text{high}})\,A\big).$$
@@ -384,7 +431,11 @@ for size in (0.0, 0.1, 0.3, 1.0):
 # Where $A > 0$ and the ratio has risen past $1+\varepsilon_{\text{high}}$, or $A < 0$ and it has
 # fallen below $1-\varepsilon_{\text{low}}$, the clipped branch is the minimum and it is constant:
 # that token's gradient is zero, and it stops pushing the policy further from $\pi_{\text{old}}$.
-# In every other case the unclipped term is the minimum and the gradient flows. GRPO uses
+# In every other case the unclipped term is the minimum and the gradient flows. The clip
+# removes the *incentive* to move a token further; it bounds neither the ratio nor the KL. The
+# other tokens' gradients move the shared weights, and with them a clipped token's probability,
+# and one large step can carry a ratio far outside the band (the experiment below measures how
+# far the policy drifts from its sampler, with the clip and without). GRPO uses
 # exactly this surrogate, per token, with group advantages (lesson 5), and may add a KL penalty
 # to a fixed reference model, a leash on the total distance rather than on each step. DAPO's
 # clip-higher sets $\varepsilon_{\text{high}} > \varepsilon_{\text{low}}$, so that tokens the
@@ -457,8 +508,9 @@ for arm in list(arms)[1:]:
 # Read the three panels together. One update per batch never clips and stays closest to its
 # sampler. More updates per batch move the policy further from the policy that sampled the
 # batch, in KL, and the clip fraction shows the clip taking hold. Without the clip nothing stops
-# the drift. Whether the extra updates buy reward per sample is in the last lines, each
-# comparison called only beyond two standard errors over the seeds.
+# the drift. Whether the extra updates buy reward per sample is in the last lines, each a
+# comparison paired by seed (`course_utils.stats`): every seed's difference, a t-interval, and
+# beside a "no difference detected" the difference the seeds could have detected.
 #
 # ### Reusing a batch on SmolLM2
 #

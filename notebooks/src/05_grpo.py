@@ -315,12 +315,13 @@ assert not torch.allclose(grad_forward, grad_reverse, atol=1e-3)
 # ## 5. Averaging the per-token loss, and the length bias
 #
 # The objective above averages over each completion's tokens ($1/|o_i|$) and then over the
-# group. That is one of three choices in use:
+# group. That is one of several choices in use:
 #
 # | `loss_type` | normalizer | used by |
 # |---|---|---|
 # | `grpo` | mean over a completion's tokens, then over completions | DeepSeekMath |
-# | `dapo` (`bnpo`) | sum over all tokens / number of real tokens in the batch | DAPO, TRL's default |
+# | `dapo` | sum over all tokens / number of real tokens in the batch | DAPO, TRL's default |
+# | `bnpo` | each micro-batch's token mean, averaged over micro-batches (equal to `dapo` without accumulation) | TRL's `bnpo` |
 # | `dr_grpo` | sum over all tokens / (completions x max length): a constant | Dr. GRPO |
 #
 # ### Exercise 5.4 — aggregation
@@ -422,7 +423,7 @@ for m, (r, p) in final.items():
 if not SMOKE:  # every baselined method beats plain REINFORCE on every seed
     for m in ("batch_mean", "rloo", "grpo"):
         assert final[m][0].min() > final["reinforce"][0].max(), m
-# Between the baselined methods: a difference is called only beyond two standard errors (Welch)
+# Between the baselined methods: paired by seed (course_utils.stats), a t-interval on n-1 df
 from course_utils.tracks import differs
 
 for m in ("batch_mean", "rloo"):
@@ -433,13 +434,14 @@ for m in ("batch_mean", "rloo"):
 # What the runs show: every baselined method beats plain REINFORCE on every seed, by a wide
 # margin, as lesson 3's variance measurements predicted (the cell asserts it). Between the
 # baselined methods, read the lines the cell prints: each compares GRPO with one of the others
-# over the seeds and calls a difference only beyond two standard errors. With five seeds only
+# seed by seed (the runs share seeds, so the comparison is paired: `course_utils.stats`), with
+# a t-interval and an exact sign-flip test. With five seeds only
 # large differences can be detected, so "no difference detected" bounds the effect; it does not
 # show the methods equal. Where GRPO's extra step, the division by the group's std, can matter: it
 # rescales every prompt's advantages to size about 1, so a prompt whose completions differ only
 # slightly is pushed as hard as one with large differences. That is also the rescaling Dr. GRPO
-# argues biases the objective (`advantage_scale="none"` in `course_utils` turns it off); the
-# learner tracks test such claims with more seeds.
+# argues biases the objective (`advantage_scale="none"` in `course_utils` turns it off); lesson
+# 8's grouping track measures that bias exactly, and on real runs.
 #
 # ## 8. From the toy to a language model
 #

@@ -173,8 +173,12 @@ experiment(tracks.entropy, "entropy")
 # by *how large* it was cannot be told from them. The arm that would separate the two, a constant
 # weight set to the dynamic arm's mean weight (logged per step as `entropy_weight`), is not in
 # the table; it is the first experiment under "Your turn" below. The constant bonus ended
-# highest ({{fig:entropy.final_constant}} against {{fig:entropy.final_none}}), but with three seeds
-# that gap is {{fig:entropy.z_constant_none}} standard errors: no difference detected. A T4 run
+# highest ({{fig:entropy.final_constant}} against {{fig:entropy.final_none}}), above no bonus on
+# {{fig:entropy.seeds_constant_none}} seeds; paired, the difference is
+# {{fig:entropy.diff_constant_none}}. The t-interval excludes 0, but it leans on the per-seed
+# differences being roughly normal, and the sign-flip test, which does not, cannot go below its
+# floor with three seeds (the report's last line): a lead to test on more seeds, not a finding.
+# A T4 run
 # ({{fig:t4.steps}} steps, Qwen2.5-0.5B) would show whether the extra entropy pays off late, when plain
 # GRPO's entropy collapses (lesson 7, section 6.1, shows such a collapse in its stored runs).
 
@@ -258,8 +262,9 @@ experiment(tracks.grouping, "grouping")
 # per prompt without the std (Dr. GRPO) keeps the low noise *and* the exact direction (its average
 # is exactly (G-1)/G of the gradient; the tests check the 8/7 rescaling). On the real task the
 # learning curves show **no difference detected**: whole-batch normalization ended at
-# {{fig:grouping.final_batch}}, per-prompt groups at {{fig:grouping.final_group}}
-# ({{fig:grouping.z}} standard errors apart). What a T4 run would add: openwebtext prompts, whose
+# {{fig:grouping.final_batch}}, per-prompt groups at {{fig:grouping.final_group}} (whole batch
+# minus per-prompt, paired by seed: {{fig:grouping.diff}}); three seeds could have detected a
+# difference of about {{fig:grouping.detectable}}, so smaller effects remain possible. What a T4 run would add: openwebtext prompts, whose
 # difficulty varies far more than the course's snippets, and enough steps for a bias of a few
 # percent in direction to compound.
 
@@ -298,7 +303,7 @@ experiment(tracks.grouping, "grouping")
 # **Falsifiers.** (2) fails if a per-document baseline leaves the retriever's part unbiased;
 # (4) fails on real completions if the cross-document weights degenerate (an effective sample
 # size near one answer); (5) fails if the joint retriever's probability of the passing example
-# is not above the frozen uniform retriever's by more than two standard errors.
+# is not above the frozen uniform retriever's (paired by seed, a t-interval above 0).
 
 # %%
 experiment(tracks.retrieval, "retrieval")
@@ -325,9 +330,10 @@ experiment(tracks.retrieval, "retrieval")
 # batch, with answers of at most 24 tokens (lesson 4 shows why longer answers would shrink it).
 # (5) is **not supported**. After {{fig:retrieval.steps}} steps the joint retriever gave the
 # passing example a probability of {{fig:retrieval.p_joint}}, *below* the uniform
-# {{fig:retrieval.p_uniform}} ({{fig:retrieval.z_p}} standard errors), and the reward showed no
-# difference (joint {{fig:retrieval.final_joint}}, generator alone {{fig:retrieval.final_alone}},
-# {{fig:retrieval.z_reward}} standard errors). The last table says why: for this 135M generator the
+# {{fig:retrieval.p_uniform}} on {{fig:retrieval.seeds_p}} seeds (paired difference
+# {{fig:retrieval.diff_p}}: not above 0, and with three seeds not a detected drop either), and
+# the reward showed no difference (joint {{fig:retrieval.final_joint}}, generator alone
+# {{fig:retrieval.final_alone}}, paired difference {{fig:retrieval.diff_reward}}). The last table says why: for this 135M generator the
 # documents hardly mattered (mean reward {{fig:retrieval.document_rewards}} by document, and the
 # passing example was not the best), so each run's retriever followed the noise of its own
 # rollouts: the weak-signal regime of (3). The joint update's cost was as the split predicts:
@@ -339,11 +345,11 @@ experiment(tracks.retrieval, "retrieval")
 # %% [markdown]
 # ## What the evidence says
 #
-# | track | hypothesis | evidence (CPU, {{fig:tracks.steps}} steps, 3 seeds) |
+# | track | hypothesis | evidence (CPU; tracks 1 and 3-5 train {{fig:tracks.steps}} steps on 3 seeds, track 2 times a trained model and trains nothing, track 6 trains {{fig:retrieval.steps}} steps on 3 seeds) |
 # |---|---|---|
 # | 1. base model | learns the unstated rule, more slowly | moves towards it (miss {{fig:base.miss_sampled}} characters); "more slowly" not established |
 # | 2. int8 + KV cache | int8 costs little quality; the cache matters more | the cache matters more ({{fig:serving.cache_fp32}} vs {{fig:serving.int8_speedup}} on latency); the quality cost was *not* small (miss {{fig:serving.miss_fp32}} → {{fig:serving.miss_int8}} characters) |
-# | 3. entropy bonus | the variance-scaled bonus converges faster | not supported: slowest to the threshold, final reward no difference (possibly confounded by the weight's size) |
+# | 3. entropy bonus | the variance-scaled bonus converges faster | not supported: slowest to the threshold, final reward no difference detected (possibly confounded by the weight's size); the constant bonus ended higher on {{fig:entropy.seeds_constant_none}} seeds, a lead for more seeds |
 # | 4. reward-aware KL | keeps knowledge at no cost in reward | untestable at this length (nothing was forgotten); no cost on average, but worse on {{fig:kl.worse_aware}} prompts |
 # | 5. grouping | per-prompt: lower variance; std division biases the direction | holds exactly ({{fig:grouping.noise_per_prompt}} vs {{fig:grouping.noise_batch}} noise; {{fig:grouping.error_grpo}} direction error); on the real task no difference detected |
 # | 6. retrieval | the gradient splits exactly; a per-document baseline is for the generator only; the retriever learns the helpful document cheaply | the split and the baselines hold exactly; reusing answers across documents cuts the retriever's noise ({{fig:retrieval.noise_loo}} → {{fig:retrieval.noise_cross}}); on the real task ({{fig:retrieval.steps}} steps) the retriever did not learn the passing example ({{fig:retrieval.p_joint}}), because the documents hardly mattered to the generator |

@@ -1,0 +1,71 @@
+"""Which prompts a step trains on: uniform over the pool, or weighted towards unsolved targets.
+
+A prompt's difficulty here is its target digit sum: copying a one-digit target from the
+instruction passes, a two-digit one (10-12 in the cpu preset) needs digits that add up to it.
+With uniform sampling a solved target keeps taking its share of every batch while an unsolved
+one gets the same few samples per step it got at the start. ``TargetPriority`` keeps a running
+pass rate per target value from the groups it has sampled and draws the next batch's targets
+with weight
+
+    w(t) = floor + (1 - pass_rate(t))
+
+(the prioritized sampling of Kimi k1.5, sec. 2.3.4, per target value instead of per problem), so
+an unsolved target is drawn up to (1 + floor) / floor times as often as a solved one, and a
+solved target is still seen, so what it learned is kept up. A target never sampled yet counts
+as unsolved. The draw is seeded by (seed, step), and the pass rates are saved in each
+checkpoint, so a resumed run draws exactly the batches an uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from . import data
+
+
+class TargetPriority:
+    """Running pass rate per target digit sum, and batches drawn by ``w(t)`` (module docstring)."""
+
+    def __init__(self, prompts: list[data.Prompt], floor: float = 0.1, momentum: float = 0.8):
+        if not floor > 0:
+            raise ValueError(f"floor must be > 0 so every target keeps some weight, got {floor}")
+        self.floor, self.momentum = floor, momentum
+        self.by_target: dict[int, list[data.Prompt]] = {}
+        for p in prompts:
+            self.by_target.setdefault(p.target_digit_sum, []).append(p)
+        self.targets = sorted(self.by_target)
+        self.pass_rate: dict[int, float] = {t: 0.0 for t in self.targets}
+        self.seen: dict[int, bool] = {t: False for t in self.targets}
+
+    def weights(self) -> torch.Tensor:
+        return torch.tensor([self.floor + 1.0 - self.pass_rate[t] for t in self.targets],
+                            dtype=torch.float64)
+
+    def batch(self, seed: int, step: int, size: int) -> list[data.Prompt]:
+        """``size`` prompts: each a target drawn by weight, then a prompt with that target."""
+        g = torch.Generator().manual_seed(seed * 1_000_003 + step)
+        picks = torch.multinomial(self.weights(), size, replacement=True, generator=g).tolist()
+        out = []
+        for k in picks:
+            pool = self.by_target[self.targets[k]]
+            out.append(pool[int(torch.randint(len(pool), (1,), generator=g))])
+        return out
+
+    def observe(self, prompts: list[data.Prompt], passed: torch.Tensor, group_size: int) -> None:
+        """Update the pass rates from one step's groups (``passed`` holds G flags per prompt)."""
+        per_group = passed.float().view(len(prompts), group_size).mean(-1).tolist()
+        for p, rate in zip(prompts, per_group):
+            t = p.target_digit_sum
+            if t not in self.pass_rate:
+                continue
+            # the first observation replaces the prior of 0 rather than averaging with it
+            m = self.momentum if self.seen[t] else 0.0
+            self.pass_rate[t] = m * self.pass_rate[t] + (1 - m) * rate
+            self.seen[t] = True
+
+    def state_dict(self) -> dict:
+        return dict(pass_rate=dict(self.pass_rate), seen=dict(self.seen))
+
+    def load_state_dict(self, state: dict) -> None:
+        self.pass_rate = {int(t): float(v) for t, v in state["pass_rate"].items()}
+        self.seen = {int(t): bool(v) for t, v in state["seen"].items()}

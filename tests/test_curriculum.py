@@ -1,0 +1,65 @@
+"""Prioritized target sampling and the adaptive entropy weight: their rules on hand examples."""
+import pytest
+import torch
+
+from course_utils import curriculum, losses
+from course_utils.data import Prompt
+
+
+def pool(targets=(3, 5, 10, 12), per_target=4):
+    return [Prompt(text=f"p{t}-{i}", snippet=f"s{i}", target_chars=32, target_digit_sum=t)
+            for t in targets for i in range(per_target)]
+
+
+def test_unseen_targets_are_drawn_uniformly_and_draws_are_seeded():
+    prio = curriculum.TargetPriority(pool())
+    assert torch.equal(prio.weights(), torch.full((4,), 1.1, dtype=torch.float64))
+    a, b = prio.batch(seed=0, step=3, size=16), prio.batch(seed=0, step=3, size=16)
+    assert a == b and a != prio.batch(seed=0, step=4, size=16)
+    assert all(p.target_digit_sum in (3, 5, 10, 12) for p in a)
+
+
+def test_solved_targets_lose_weight_and_unsolved_ones_are_drawn_more():
+    prompts = pool()
+    prio = curriculum.TargetPriority(prompts, floor=0.1)
+    batch = [p for p in prompts if p.target_digit_sum in (3, 10)][::4]   # one prompt of 3, one of 10
+    assert [p.target_digit_sum for p in batch] == [3, 10]
+    passed = torch.tensor([1.0] * 4 + [0.0] * 4)                          # G = 4: all pass / none
+    prio.observe(batch, passed, group_size=4)
+    assert prio.pass_rate[3] == 1.0 and prio.pass_rate[10] == 0.0         # first sight replaces the prior
+    assert prio.weights().tolist() == pytest.approx([0.1, 1.1, 1.1, 1.1])
+    prio.observe(batch[:1], torch.zeros(4), group_size=4)                 # later sights average
+    assert prio.pass_rate[3] == pytest.approx(0.8)
+    drawn = [p.target_digit_sum for step in range(200) for p in prio.batch(0, step, 4)]
+    share_3 = drawn.count(3) / len(drawn)
+    expected = (0.1 + 0.2) / (0.3 + 3 * 1.1)
+    assert abs(share_3 - expected) < 0.03
+
+
+def test_priority_state_round_trips_through_a_checkpoint():
+    prompts = pool()
+    prio = curriculum.TargetPriority(prompts)
+    prio.observe(prompts[:1], torch.tensor([1.0, 0.0]), group_size=2)
+    other = curriculum.TargetPriority(prompts)
+    other.load_state_dict({k: {str(t): v for t, v in d.items()} for k, d in prio.state_dict().items()})
+    assert other.pass_rate == prio.pass_rate and other.seen == prio.seen
+    assert other.batch(1, 7, 8) == prio.batch(1, 7, 8)
+    with pytest.raises(ValueError, match="floor"):
+        curriculum.TargetPriority(prompts, floor=0.0)
+
+
+def test_adaptive_entropy_turns_on_below_the_target_and_off_above():
+    ctl = losses.AdaptiveEntropy(target=1.0, delta=0.01, max_weight=0.025)
+    assert ctl.weight() == 0.0                          # nothing observed yet
+    ctl.observe(3.0)                                    # above the target: off, coefficient stays at 0
+    assert ctl.weight() == 0.0 and ctl.coef == 0.0
+    for expected in (0.01, 0.02, 0.025, 0.025):         # below: grows by delta, capped
+        ctl.observe(0.5)
+        assert ctl.weight() == pytest.approx(expected)
+    ctl.observe(1.5)                                    # back above: off at once, coefficient decays
+    assert ctl.weight() == 0.0 and ctl.coef == pytest.approx(0.015)
+    ctl.observe(float("nan"))                           # a non-finite reading changes nothing
+    assert ctl.coef == pytest.approx(0.015) and ctl.entropy == 1.5
+    restored = losses.AdaptiveEntropy(1.0, 0.01, 0.025)
+    restored.load_state_dict(ctl.state_dict())
+    assert (restored.coef, restored.entropy) == (ctl.coef, ctl.entropy)
