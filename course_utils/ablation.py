@@ -33,6 +33,8 @@ ARMS: dict[str, dict] = {
     "with dynamic sampling": WITH_DS,
     "with dynamic sampling and the sharp reward": dict(**WITH_DS, reward="sharp"),
 }
+# The arm each one adds a lever to, besides the full recipe: one change at a time is compared.
+PARENTS = {"with dynamic sampling and the sharp reward": "with dynamic sampling"}
 SMOKE = dict(model="tiny-qwen2", prompt_tokens=16, prompts_per_step=2, group_size=4,
              max_new_tokens=10, train_prompts=4, eval_prompts=4, save_every=2, lr=1e-3)
 # What a run is judged on: the held-out greedy evaluation after training.
@@ -200,36 +202,39 @@ def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
 
 def held_out_size(result: dict) -> dict:
     """The held-out set's size: as stored, or (for a result.json written before it was stored)
-    the cpu preset's, which every stored arm used."""
+    that of the cpu preset the result records, which every stored arm used."""
     if "held_out" in result:
         return result["held_out"]
     snippets = sum(data.is_held_out(s) for s in data.offline_snippets())
-    prompts = PRESETS["cpu"]["eval_prompts"]
+    prompts = result.get("preset", PRESETS["cpu"])["eval_prompts"]
     return dict(prompts=prompts, snippets=min(prompts, snippets))
 
 
 def comparisons(result: dict) -> list[str]:
-    """Each arm against the full recipe, paired by seed (``course_utils.stats``): the arms share
-    seeds, so they share prompts, targets and, until they part, samples. Only the seeds both
-    arms have are compared."""
+    """Each arm against the full recipe, and against the arm it adds one lever to (``PARENTS``),
+    paired by seed (``course_utils.stats``): the arms share seeds, so they share prompts,
+    targets and, until they part, samples. Only the seeds both arms have are compared, and of
+    those only the ones whose held-out set has the kind of target compared."""
     arms = result["arms"]
     seeds = lambda arm: [Path(d).name.removeprefix("seed") for d in arms[arm]["dirs"]]  # noqa: E731
+    pairs = [(arm, FULL) for arm in arms if arm != FULL and FULL in arms]
+    pairs += [(arm, parent) for arm, parent in PARENTS.items() if arm in arms and parent in arms]
     lines = []
-    for arm in arms:
-        if arm == FULL:
-            continue
-        shared = [s for s in seeds(arm) if s in seeds(FULL)]
+    for arm, base in pairs:
         for key, label in (("pass_both", "held-out pass rate (both)"),
                            ("pass_both_two_digit", "two-digit targets")):
             value = lambda a: {s: r[key] for s, r in zip(seeds(a), arms[a]["runs"])}  # noqa: E731
-            a, b = value(arm), value(FULL)
-            if len(shared) < 2:
-                verdict = f"{len(shared)} shared seed(s): too few to compare"
-            elif not all(math.isfinite(v[s]) for v in (a, b) for s in shared):
-                verdict = "some seed's held-out set has no such target"
+            a, b = value(arm), value(base)
+            shared = [s for s in seeds(arm) if s in b]
+            usable = [s for s in shared if math.isfinite(a[s]) and math.isfinite(b[s])]
+            lacking = f" (no such target on seed(s) {', '.join(sorted(set(shared) - set(usable)))})" \
+                if len(usable) < len(shared) else ""
+            if len(usable) < 2:
+                verdict = f"{len(usable)} shared seed(s) with such targets: too few to compare"
             else:
-                verdict = stats.paired([a[s] for s in shared], [b[s] for s in shared]).verdict("{:+.1%}")
-            lines.append(f"- {arm} minus the full recipe, {label}, seeds {', '.join(shared)}: {verdict}")
+                verdict = stats.paired([a[s] for s in usable], [b[s] for s in usable]).verdict("{:+.1%}")
+            name = "the full recipe" if base == FULL else f"the arm '{base}'"
+            lines.append(f"- {arm} minus {name}, {label}, seeds {', '.join(usable)}{lacking}: {verdict}")
     return lines
 
 

@@ -229,6 +229,11 @@ class Config:
         need(self.entropy_weight_max > 0, "entropy_weight_max", "must be > 0")
         need(self.entropy_bonus == "none" or self.entropy_coef > 0, "entropy_coef",
              f"must be > 0 when entropy_bonus='{self.entropy_bonus}'")
+        # dynamic sampling keeps only groups with signal, so groups that all pass never reach
+        # the pass rates the prioritized draw is weighted by, and its refills are uniform
+        need(self.target_sampling == "uniform" or not self.dynamic_sampling, "target_sampling",
+             "'prioritized' learns pass rates from every sampled group, which dynamic sampling "
+             "drops; turn one of them off")
         need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
              f"must be between 0 and digit_sum_max={self.digit_sum_max}")
         need(self.digit_sum_max <= 9 * self.target_chars, "digit_sum_max",
@@ -310,7 +315,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # inverse-variance bonus did not help, and no ablation here supports it. kl_coef 0 is a
     # cost decision with thin evidence either way: the term costs a reference forward per step
     # and DAPO drops it; lesson 8's KL track is too short to test it, and lesson 7's one probe
-    # with it kept the policy exploring where its twin without it collapsed (6.3). Add it
+    # with it (an earlier recipe, one seed, stopped early, no pass sampled yet) kept the policy
+    # exploring where its twin without it collapsed (6.3). Add it
     # (kl_coef=0.04, DeepSeekMath's) if distinct completions collapse or the language degrades.
     "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
                target_chars=64, reward="shaped", prompts_per_step=16,

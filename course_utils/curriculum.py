@@ -29,6 +29,10 @@ class TargetPriority:
     def __init__(self, prompts: list[data.Prompt], floor: float = 0.1, momentum: float = 0.8):
         if not floor > 0:
             raise ValueError(f"floor must be > 0 so every target keeps some weight, got {floor}")
+        if not 0 <= momentum < 1:
+            raise ValueError(f"momentum must be in [0, 1), got {momentum}")
+        if not prompts:
+            raise ValueError("prioritized sampling needs at least one training prompt")
         self.floor, self.momentum = floor, momentum
         self.by_target: dict[int, list[data.Prompt]] = {}
         for p in prompts:
@@ -52,12 +56,17 @@ class TargetPriority:
         return out
 
     def observe(self, prompts: list[data.Prompt], passed: torch.Tensor, group_size: int) -> None:
-        """Update the pass rates from one step's groups (``passed`` holds G flags per prompt)."""
-        per_group = passed.float().view(len(prompts), group_size).mean(-1).tolist()
-        for p, rate in zip(prompts, per_group):
-            t = p.target_digit_sum
+        """Update the pass rates from one step's groups (``passed`` holds G flags per prompt):
+        one update per target value and step, from all of that step's samples of it, so the
+        result does not depend on the order of the groups in the batch."""
+        flags = passed.float().view(len(prompts), group_size)
+        this_step: dict[int, list[float]] = {}
+        for p, row in zip(prompts, flags):
+            this_step.setdefault(p.target_digit_sum, []).extend(row.tolist())
+        for t, values in this_step.items():
             if t not in self.pass_rate:
                 continue
+            rate = sum(values) / len(values)
             # the first observation replaces the prior of 0 rather than averaging with it
             m = self.momentum if self.seen[t] else 0.0
             self.pass_rate[t] = m * self.pass_rate[t] + (1 - m) * rate
@@ -67,5 +76,10 @@ class TargetPriority:
         return dict(pass_rate=dict(self.pass_rate), seen=dict(self.seen))
 
     def load_state_dict(self, state: dict) -> None:
-        self.pass_rate = {int(t): float(v) for t, v in state["pass_rate"].items()}
-        self.seen = {int(t): bool(v) for t, v in state["seen"].items()}
+        """Restore the pass rates of this pool's targets; one the checkpoint never saw starts
+        unseen, and one the pool no longer has is dropped."""
+        for t in self.targets:
+            if str(t) in state["pass_rate"] or t in state["pass_rate"]:
+                key = t if t in state["pass_rate"] else str(t)
+                self.pass_rate[t] = float(state["pass_rate"][key])
+                self.seen[t] = bool(state["seen"][key])

@@ -37,6 +37,21 @@ def _model(seed: int, vocab: int = 64, sharpen: float = 1.0):
     return model
 
 
+def _gpt2_model(seed: int, vocab: int = 64, sharpen: float = 1.0):
+    """A small random GPT-2: *absolute* position embeddings, so a left-padded row scored without
+    position ids gets different logits (a rotary model such as Qwen2 sees only relative
+    positions and would not show the mistake)."""
+    from transformers import GPT2Config, GPT2LMHeadModel
+
+    torch.manual_seed(seed)
+    config = GPT2Config(vocab_size=vocab, n_positions=64, n_embd=32, n_layer=2, n_head=4,
+                        tie_word_embeddings=False)
+    model = GPT2LMHeadModel(config).eval()
+    with torch.no_grad():
+        model.lm_head.weight.mul_(sharpen)
+    return model
+
+
 def _batch(g: torch.Generator, vocab: int, N: int, P: int, T: int, eos: int):
     """Left-padded prompts of different lengths and right-padded completions ending in EOS at
     different positions (one row with no EOS at all: truncated)."""
@@ -96,8 +111,8 @@ def _logprob_mistakes(model, prompt_ids, prompt_mask, completion_ids, mask, temp
             "these are probabilities, not log-probabilities: use log_softmax":
                 torch.softmax(right / temperature, -1).gather(-1, completion_ids.unsqueeze(-1))
                 .squeeze(-1) * m,
-            # (with the transformers pinned here, a Qwen2 given an attention mask and no position
-            # ids gives the same logits, so this answer is accepted by the check before it)
+            # (a rotary model such as Qwen2 gives the same logits without position ids, so this
+            # answer is caught on the GPT-2 case only, where positions are absolute)
             "the position ids ignore the left padding: a left-padded row must start counting "
             "positions at its first real token (position_ids = attention_mask.cumsum(-1) - 1, "
             "clamped at 0)": _gather(no_positions / temperature, completion_ids) * m,
@@ -112,8 +127,10 @@ def check_completion_logprobs(fn: Callable) -> None:
     gradient that reaches the model's weights."""
     name = "completion_logprobs"
     g = torch.Generator().manual_seed(0)
-    for case, (N, P, T, temperature) in enumerate([(3, 5, 4, 1.0), (4, 7, 6, 0.7), (2, 3, 5, 1.3)]):
-        model = _model(seed=case, sharpen=8.0)
+    cases = [(3, 5, 4, 1.0, "qwen2"), (4, 7, 6, 0.7, "qwen2"), (2, 3, 5, 1.3, "qwen2"),
+             (4, 6, 5, 0.9, "gpt2")]
+    for case, (N, P, T, temperature, arch) in enumerate(cases):
+        model = _model(seed=case, sharpen=8.0) if arch == "qwen2" else _gpt2_model(seed=case, sharpen=8.0)
         eos = 2
         prompt_ids, prompt_mask, completion_ids, mask = _batch(g, 64, N, P, T, eos)
         args = dict(model=model, prompt_ids=prompt_ids, prompt_mask=prompt_mask,
@@ -136,7 +153,8 @@ def check_completion_logprobs(fn: Callable) -> None:
                                 f"seeded batch ({N} rows, prompts left-padded to {P} tokens, "
                                 f"completions of up to {T}). Re-read the steps above the cell.")
         _check_gradient_reaches_weights(name, model, got, want)
-    print(f"✓ {name}: correct (3 batches, left padding, temperatures 1.0, 0.7 and 1.3)")
+    print(f"✓ {name}: correct (4 batches with left padding on a rotary model, Qwen2, and one with "
+          f"absolute positions, GPT-2; temperatures 1.0, 0.7, 1.3 and 0.9)")
 
 
 def _check_gradient_reaches_weights(name, model, got, want) -> None:
@@ -201,26 +219,47 @@ def check_sample_group(fn: Callable) -> None:
     token under the distribution it was sampled from (0 on padding)."""
     name = "sample_group"
     g = torch.Generator().manual_seed(1)
-    for case, (P, G, max_new, temperature) in enumerate([(4, 6, 8, 1.0), (7, 4, 12, 0.7)]):
+    # EOS made likely enough that some rows stop early and others run to max_new_tokens, and in
+    # the last case so likely that every row stops well before it (the loop must stop then)
+    for case, (P, G, max_new, temperature, eos_boost) in enumerate(
+            [(4, 6, 8, 1.0, 0.15), (7, 4, 12, 0.7, 0.15), (5, 5, 24, 1.0, 10.0)]):
         model = _model(seed=10 + case, vocab=32, sharpen=6.0)
         eos = 2
-        # make EOS likely enough that some rows stop early and others run to max_new_tokens
         with torch.no_grad():
-            model.lm_head.weight[eos] = model.lm_head.weight.mean(0) + 0.15 * model.lm_head.weight.std()
+            model.lm_head.weight[eos] = model.lm_head.weight.mean(0) + eos_boost * model.lm_head.weight.std()
         prompt_ids = torch.randint(3, 32, (1, P), generator=g)
         counter = TokenCounter(model)
+        grad_modes: list[bool] = []
+        watch = model.register_forward_pre_hook(lambda *_: grad_modes.append(torch.is_grad_enabled()))
         try:
             ids, mask, logprobs = _sample(name, fn, model, prompt_ids, G, max_new, eos,
                                           temperature, seed=case)
         finally:
             counter.close()
-        if logprobs.requires_grad or ids.requires_grad:
+            watch.remove()
+        if logprobs.requires_grad or ids.requires_grad or any(grad_modes):
             raise ExerciseError(f"{name}: sampling built an autograd graph (the log-probs require "
                                 f"grad): run the loop under torch.no_grad(). Sampling is not "
                                 f"differentiated, and the graph of every decoding step would be "
                                 f"kept in memory until the step ends.")
         T = ids.shape[1]
+        again, _, _ = _sample(name, fn, model, prompt_ids, G, max_new, eos, temperature, seed=case)
+        if not torch.equal(again, ids):
+            raise ExerciseError(f"{name}: two calls with generators seeded alike sampled different "
+                                f"tokens: draw every token with the generator passed in "
+                                f"(torch.multinomial(..., generator=generator)), so a run can be "
+                                f"reproduced and resumed.")
         _check_sample_mask(name, ids, mask, eos)
+        is_eos = ids == eos
+        after = (is_eos.long().cumsum(1) - is_eos.long()) > 0      # strictly after the first EOS
+        if (ids[after] != eos).any():
+            raise ExerciseError(f"{name}: a row has tokens other than EOS after its first EOS: once "
+                                f"a row has ended, feed and record EOS (the padding) for it.")
+        ends = torch.where(is_eos.any(1), is_eos.float().argmax(1) + 1, torch.full((G,), max_new))
+        if T != int(ends.max()):
+            raise ExerciseError(f"{name}: the completions are {T} tokens wide, but the longest row "
+                                f"ends after {int(ends.max())}: stop the loop once every row has "
+                                f"produced EOS (and not before).")
         _check_sample_logprobs(name, model, prompt_ids, ids, mask, logprobs, temperature)
         # with a cache: the prompt once (or once per row) and each new token once
         budget = G * P + G * T
@@ -278,28 +317,40 @@ def _check_sample_logprobs(name, model, prompt_ids, ids, mask, logprobs, tempera
 
 
 def _check_sampling_distribution(name, fn) -> None:
-    """The first sampled token of many rows follows softmax(logits / temperature): closer to it
-    (total variation) than to the untempered distribution, and within sampling noise of it."""
+    """The sampled tokens follow softmax(logits / temperature), at the first step and at the
+    second (rows whose first token was the likeliest one, so that they share a context): each
+    closer to it in total variation than to the untempered distribution, and within sampling
+    noise of it. With 4,000 rows the noise is about 0.008 (99% of draws below 0.019); top-p 0.95
+    sampling, which drops the tail, is 0.049 away, so the threshold 0.035 tells them apart."""
     # a model whose next-token distribution after this prompt is neither flat nor one-hot: at
-    # temperature 0.5 it moves about 0.3 in total variation, against sampling noise of about 0.03
+    # temperature 0.5 it moves about 0.3 in total variation
     model = _model(seed=20, vocab=8, sharpen=7.0)
     prompt_ids = torch.tensor([[5, 3, 7, 4]])
-    G, temperature = 1500, 0.5
-    ids, _, _ = _sample(name, fn, model, prompt_ids, G, 1, 2, temperature, seed=3)
-    with torch.no_grad():
-        logits = model(input_ids=prompt_ids).logits[0, -1].float()
-    counts = torch.bincount(ids[:, 0].long(), minlength=8).double() / G
-    tempered = torch.softmax(logits / temperature, -1).double()
-    plain = torch.softmax(logits, -1).double()
+    G, temperature, threshold = 4000, 0.5, 0.035
+    ids, _, _ = _sample(name, fn, model, prompt_ids, G, 2, 2, temperature, seed=3)
     tv = lambda p, q: 0.5 * float((p - q).abs().sum())  # noqa: E731
-    if tv(tempered, plain) < 0.15:  # pragma: no cover - guards the check itself
-        raise RuntimeError("the distribution check's model is too flat to tell temperatures apart")
-    if tv(counts, tempered) > 0.1 or tv(counts, tempered) >= tv(counts, plain):
-        raise ExerciseError(f"{name}: over {G} samples of one token, the frequencies are "
-                            f"{tv(counts, tempered):.2f} (total variation) from "
-                            f"softmax(logits / temperature) and {tv(counts, plain):.2f} from "
-                            f"softmax(logits): sample from the tempered distribution, "
-                            f"torch.multinomial(softmax(logits / temperature), 1).")
+    with torch.no_grad():
+        first = model(input_ids=prompt_ids).logits[0, -1].float()
+        top = int(first.argmax())
+        second = model(input_ids=torch.cat([prompt_ids, torch.tensor([[top]])], -1)).logits[0, -1].float()
+    rows = ids[:, 0] == top
+    for step, logits, drawn in (("first", first, ids[:, 0]),
+                                ("second", second, ids[rows, 1] if ids.shape[1] > 1 else None)):
+        if drawn is None or len(drawn) < 1000:   # every row stopped at the first token
+            continue
+        counts = torch.bincount(drawn.long(), minlength=8).double() / len(drawn)
+        tempered = torch.softmax(logits / temperature, -1).double()
+        plain = torch.softmax(logits, -1).double()
+        if tv(tempered, plain) < 0.15:  # pragma: no cover - guards the check itself
+            raise RuntimeError("the distribution check's model is too flat to tell temperatures apart")
+        if tv(counts, tempered) > threshold or tv(counts, tempered) >= tv(counts, plain):
+            raise ExerciseError(f"{name}: over {len(drawn)} samples of the {step} token, the "
+                                f"frequencies are {tv(counts, tempered):.3f} (total variation) from "
+                                f"softmax(logits / temperature) and {tv(counts, plain):.3f} from "
+                                f"softmax(logits), against sampling noise below {threshold}: "
+                                f"sample from the tempered distribution at every step, all of it, "
+                                f"torch.multinomial(softmax(logits / temperature), 1), with no "
+                                f"top-k or top-p cut.")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -338,6 +389,55 @@ def _reference_backward(model, batch, advantages, temperature, loss_type, micro_
     return grads
 
 
+class _CallLog:
+    """Records, while active, how many rows each forward of ``model`` runs on and when a
+    backward pass reaches its weights (a hook on the input embedding, which every forward uses),
+    so a checker can tell a micro-batched backward from one that only looks like it."""
+
+    def __init__(self, model):
+        self.events: list[tuple[str, int]] = []
+        self._handles = [
+            model.register_forward_pre_hook(self._forward, with_kwargs=True),
+            model.get_input_embeddings().weight.register_hook(self._backward),
+        ]
+
+    def _forward(self, module, args, kwargs):
+        ids = kwargs.get("input_ids", args[0] if args else None)
+        if ids is None:
+            ids = kwargs.get("inputs_embeds")
+        self.events.append(("forward", int(ids.shape[0])))
+
+    def _backward(self, grad):
+        self.events.append(("backward", 0))
+        return grad
+
+    def close(self):
+        for handle in self._handles:
+            handle.remove()
+
+    def problem(self, N: int, micro_rows: int) -> str | None:
+        """What is wrong with the call pattern, or None: every forward on at most micro_rows
+        rows, and one backward per micro-batch, each after that micro-batch's forwards."""
+        rows = [n for kind, n in self.events if kind == "forward"]
+        backwards = sum(kind == "backward" for kind, _ in self.events)
+        if rows and max(rows) > micro_rows:
+            return (f"the model ran on {max(rows)} rows in one forward; micro-batching means at "
+                    f"most micro_rows = {micro_rows} rows per forward, so that only one "
+                    f"micro-batch's activations are in memory at a time")
+        micro_batches = -(-N // micro_rows)
+        if backwards < micro_batches:
+            return (f"{backwards} backward pass(es) for {micro_batches} micro-batches: the "
+                    f"micro-batch losses were added up and backpropagated together, which keeps "
+                    f"every micro-batch's graph in memory at once; call .backward() on each "
+                    f"micro-batch's loss before the next forward")
+        kinds = [kind for kind, _ in self.events]
+        for a, b in zip(kinds, kinds[1:]):
+            if a == b == "backward":
+                return ("two backward passes without a forward between them: backpropagate each "
+                        "micro-batch's loss once, right after its forward")
+        return None
+
+
 def check_grpo_backward(fn: Callable) -> None:
     """``fn(model, prompt_ids, prompt_mask, completion_ids, completion_mask, advantages,
     temperature, micro_rows, loss_type)``: backpropagate the GRPO loss (one update per batch, so
@@ -353,17 +453,34 @@ def check_grpo_backward(fn: Callable) -> None:
         batch = _batch(g, 64, N, P, T, eos=2)
         advantages = torch.randn(N, 1, generator=g)
         want = _reference_backward(model, batch, advantages, temperature, loss_type, N, "global")
-        model.zero_grad(set_to_none=True)
+        # .grad holds something already, as it would after another loss's backward: the answer
+        # must add to it, not clear it (the caller zeroes once per step)
+        with torch.no_grad():
+            for k, param in enumerate(model.parameters()):
+                param.grad = 0.01 * torch.randn(param.shape, generator=torch.Generator().manual_seed(k))
+        before = _grads(model)
         args = dict(model=model, prompt_ids=batch[0], prompt_mask=batch[1],
                     completion_ids=batch[2], completion_mask=batch[3], advantages=advantages,
                     temperature=temperature, micro_rows=micro, loss_type=loss_type)
-        loss = _run(name, fn, args)
-        got = _grads(model)
+        log = _CallLog(model)
+        try:
+            loss = _run(name, fn, args)
+        finally:
+            log.close()
+        raw = _grads(model)
+        got = [r - b for r, b in zip(raw, before)]
         model.zero_grad(set_to_none=True)
+        if all(_close(r, w, 1e-4) for r, w in zip(raw, want)):
+            raise ExerciseError(f"{name}: the gradients were zeroed before the first micro-batch: "
+                                f"leave .grad as you find it and add to it (the caller zeroes it "
+                                f"once per step, before your function; a test here fills it first)")
         if all(float(t.abs().max()) == 0 for t in got):
             raise ExerciseError(f"{name}: no gradient reached the model: call loss.backward() on "
                                 f"each micro-batch's loss (and do not zero the gradients between "
                                 f"micro-batches).")
+        pattern = log.problem(N, micro)
+        if pattern:
+            raise ExerciseError(f"{name}: {pattern}.")
         if not all(_close(a, b, 1e-4) for a, b in zip(got, want)):
             wrong = {
                 "averaged": f"each micro-batch's loss is normalized by its own counts and the "
@@ -381,7 +498,9 @@ def check_grpo_backward(fn: Callable) -> None:
             for mode, message in wrong.items():
                 other = _reference_backward(model, batch, advantages, temperature, loss_type,
                                             micro, mode)
-                if all(_close(a, b, 1e-4) for a, b in zip(got, other)):
+                # zeroing between micro-batches also wiped what .grad held before the call
+                seen = raw if mode == "zeroed" else got
+                if all(_close(a, b, 1e-4) for a, b in zip(seen, other)):
                     raise ExerciseError(f"{name}: {message}")
             raise ExerciseError(f"{name}: the accumulated gradient differs from the full batch's "
                                 f"({N} rows in micro-batches of {micro}, loss_type {loss_type!r}).")

@@ -198,9 +198,11 @@ class AdaptiveEntropy:
     adaptive entropy control, arXiv 2505.22312, sec. 3.2; TRL 1.16's ``use_adaptive_entropy``):
 
         c_{k+1} = clip(c_k + delta * sign(H_target - H_k), 0, c_max)
-        weight_k = c_k if H_k < H_target else 0
+        weight_{k+1} = c_{k+1} if H_k < H_target else 0
 
-    where H_k is the mean entropy per completion token of step k's batch. While the policy is
+    where H_k is the mean entropy per completion token of step k's batch: the weight a step
+    uses is set by the steps before it (the entropy of this step's batch is known only after its
+    forward), as in TRL. While the policy is
     more random than the target the bonus is off and c drifts down; once it falls below, c grows
     by ``delta`` a step until the bonus pushes entropy back up. Unlike a constant bonus it does
     not fight the early, wanted drop from the base model's entropy."""

@@ -231,8 +231,8 @@ def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) ->
     Why not ``shaped_score``'s relative digit credit: against S = 12 it pays a reply with no
     digit 1/2 and the one-digit reply "8" 3/4, so a policy that copies one digit into a
     template has earned most of the credit and two-digit targets look nearly solved. Counted in
-    whole units, "8" earns 1/5, "9" 1/4 and any digits that add up to 12 earn 1: every step
-    towards the second digit is worth more than all the steps before it. A reply without digits
+    whole units, "8" earns 1/5, "9" 1/4 and any digits that add up to 12 earn 1: each unit
+    closer to the target is worth more than the unit before it, and the last one most. A reply without digits
     earns no digit credit, so it is never a safe harbour. The score is 1 exactly when
     ``binary_reward`` is 1.
     """

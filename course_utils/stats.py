@@ -147,6 +147,13 @@ class PairedComparison:
         low, high = self.interval
         return self.sd > 0 and (low > 0 or high < 0) or (self.sd == 0 and self.mean != 0)
 
+    @property
+    def p_floor(self) -> float:
+        """The smallest p-value the sign-flip test can give here: 2 ** (1 - m), where m counts
+        the seeds whose difference is not zero (a zero difference has no sign to flip)."""
+        m = sum(d != 0 for d in self.diffs)
+        return 2.0 ** (1 - m) if m else 1.0
+
     def verdict(self, fmt: str = "{:+.3f}") -> str:
         """One line: per-seed differences, mean and interval, p-value, and the verdict, with
         the smallest detectable difference beside a "no difference detected"."""
@@ -155,21 +162,30 @@ class PairedComparison:
             what = "identical on every seed" if self.mean == 0 else "the same difference on every seed"
             return f"per-seed differences [{per_seed}]: {what}"
         low, high = self.interval
+        alpha = 1 - self.level
+        nonzero = sum(d != 0 for d in self.diffs)
+        seeds = f"{self.n} seeds" if nonzero == self.n else f"{nonzero} of {self.n} seeds differing"
         head = (f"per-seed differences [{per_seed}], mean {fmt.format(self.mean)}, "
                 f"{self.level:.0%} t-interval [{fmt.format(low)}, {fmt.format(high)}] "
                 f"({self.n - 1} df), sign-flip p = {self.p_value:.3g} (its smallest possible with "
-                f"{self.n} seeds: {2.0 ** (1 - self.n):.3g})")
-        if self.significant:
-            if self.p_value > 1 - self.level:
-                # the t-interval assumes roughly normal differences; the sign-flip test assumes
-                # only that each is as likely either sign, and with few seeds it cannot reject
-                return head + ("; the t-interval excludes 0: a difference if the per-seed "
-                               "differences are roughly normal, which the sign-flip test, "
-                               f"p = {self.p_value:.3g}, cannot confirm with {self.n} seeds")
+                f"{seeds}: {self.p_floor:.3g})")
+        if self.significant and self.p_value <= alpha:
             return head + "; the t-interval excludes 0: a difference"
-        return head + (f"; the t-interval includes 0: no difference detected (this design detects "
-                       f"about {fmt.format(self.detectable).lstrip('+')} at 80% power, estimated "
-                       f"from the observed spread)")
+        if self.significant:
+            # the t-interval assumes roughly normal differences; the sign-flip test assumes only
+            # that each is as likely either sign
+            why = (f"it cannot go below {self.p_floor:.3g} with {seeds}" if self.p_floor > alpha
+                   else "these differences are not extreme enough for it")
+            return head + ("; the t-interval excludes 0: a difference if the per-seed differences "
+                           f"are roughly normal, which the sign-flip test does not confirm: {why}")
+        if self.p_value <= alpha:
+            return head + ("; the t-interval includes 0 but the sign-flip test finds a difference: "
+                           "the differences lean one way, and their spread (often one seed far "
+                           "from the others) widens the t-interval; read the per-seed values")
+        return head + (f"; the t-interval includes 0: no difference detected (a t-test on these "
+                       f"seeds would detect about {fmt.format(self.detectable).lstrip('+')} at 80% "
+                       f"power if the true spread were the observed one, itself a rough estimate "
+                       f"from {self.n - 1} df)")
 
 
 def paired(a: list[float], b: list[float], level: float = 0.95) -> PairedComparison:

@@ -334,6 +334,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     # log-probs (taken before any weight moves), so the ratio measures the policy's change and
     # not the two networks' rounding (the sampler-trainer gap: benchmarks/RESULTS.md).
     trainer_old: dict[int, torch.Tensor] = {}
+    skipped_before = policy.counters["nonfinite_skipped"]
     for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
         step_ok = True
@@ -391,11 +392,14 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                 policy.counters["nonfinite_skipped"] += 1
     model.eval()
     policy.scheduler.step()
-    if policy.entropy_control and "entropy" in stats_sum:
-        policy.entropy_control.observe(stats_sum["entropy"])
     if W > 1:  # the loss and the token statistics are each process's share of a global sum
         shares = acc.reduce(torch.tensor([loss_total, *stats_sum.values()], device=acc.device), "sum")
         loss_total, stats_sum = float(shares[0]), dict(zip(stats_sum, shares[1:].tolist()))
+    # the adaptive entropy weight reads the whole batch's entropy (after the reduce, so every
+    # process moves its coefficient alike), and only from a step that ran in full on some tokens
+    if policy.entropy_control and "entropy" in stats_sum and n_tok > 0 and \
+            policy.counters["nonfinite_skipped"] == skipped_before:
+        policy.entropy_control.observe(stats_sum["entropy"])
     t_end = time.perf_counter()
     lengths = ro.completion_mask.sum(-1).float()
     # two-digit targets (10 and up) need more than a digit copied from the instruction

@@ -23,6 +23,8 @@ def _policies():
     g = torch.Generator().manual_seed(0)
     seq_small, seq = trust.SequencePolicy(T=2, V=2), trust.SequencePolicy(T=3, V=3)
     return [
+        # one parameter: F is [1, 1], which a .squeeze() turns into a scalar
+        ("a 2-armed bandit", trust.bandit_log_probs, torch.tensor([0.7], dtype=torch.float64)),
         ("a 3-armed bandit", trust.bandit_log_probs, torch.randn(2, generator=g, dtype=torch.float64)),
         ("a near-deterministic 6-armed bandit", trust.bandit_log_probs,
          torch.tensor([4.0, -1.0, 0.5, -2.0, 1.0], dtype=torch.float64)),
@@ -49,8 +51,6 @@ def _fisher_mistakes(log_prob_fn, theta) -> dict[str, torch.Tensor]:
         "each outer product by the outcome's probability": scores.T @ scores,
         "the outer products are weighted by the log-probabilities; weight them by the "
         "probabilities pi(x) = exp(log pi(x))": scores.T @ (logp[:, None] * scores),
-        "this is the outer product of the *expected* score, which is zero (E[grad log pi] = 0); "
-        "F is the expectation of the outer product, E[s s^T]": torch.outer(mean_score, mean_score),
         "only the diagonal is kept: F couples the parameters, and the natural gradient needs the "
         "off-diagonal terms": torch.diag(torch.diag(F)),
         "the sign is flipped: F = -E[Hessian of log pi] = +E[s s^T], a positive semi-definite "
@@ -66,17 +66,26 @@ def check_fisher_matrix(fn: Callable) -> None:
         got = _as_tensor(name, _run(name, fn, dict(log_prob_fn=log_prob_fn, theta=theta)))
         want = trust.fisher_matrix(log_prob_fn, theta)
         if got.shape != want.shape:
+            squeezed = " (a .squeeze() drops both dimensions when d = 1)" if got.numel() == want.numel() else ""
             raise ExerciseError(f"{name}: on {label} (d = {len(theta)} parameters, "
                                 f"{len(log_prob_fn(theta))} outcomes) the result has shape "
-                                f"{tuple(got.shape)}; F is [d, d] = {tuple(want.shape)}")
-        if _close(got.detach(), want, 1e-8):
+                                f"{tuple(got.shape)}; F is [d, d] = {tuple(want.shape)}{squeezed}")
+        # theta is float64; an answer that builds F in float32 (a torch.zeros(d, d) made while
+        # the default dtype is float32) is right to float32's precision, and is accepted as such
+        tol = 1e-8 if got.dtype == torch.float64 else 1e-5
+        if _close(got.detach(), want, tol):
             continue
+        if float(got.detach().abs().max()) <= 1e-10 * float(want.abs().max()):   # zero up to rounding
+            raise ExerciseError(f"{name}: F is all zeros on {label}. If this is the outer product "
+                                f"of the *expected* score, that is zero because E[grad log pi] = 0; "
+                                f"F is the expectation of the outer product, E[s s^T]. Otherwise, "
+                                f"check that the scores (the Jacobian of log_prob_fn) reach F.")
         for message, value in _fisher_mistakes(log_prob_fn, theta).items():
-            if _close(got.detach(), value, 1e-8):
+            if _close(got.detach(), value, tol):
                 raise ExerciseError(f"{name}: {message} (on {label})")
         diff = (got.detach() - want).abs().max().item()
         raise ExerciseError(f"{name}: differs from E[s s^T] by up to {diff:.3g} on {label}")
-    print(f"✓ {name}: correct (bandits with 3 and 6 arms, one near-deterministic; sequence "
+    print(f"✓ {name}: correct (bandits with 2, 3 and 6 arms, one near-deterministic; sequence "
           f"policies of 2 and 3 tokens)")
 
 
@@ -139,8 +148,12 @@ def check_natural_gradient(fn: Callable) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def _padded(t: torch.Tensor, extra: int, fill: torch.Tensor) -> torch.Tensor:
-    return torch.cat([t, fill.expand(t.shape[0], extra)], 1)
+def _pad_rows(t: torch.Tensor, left: torch.Tensor, extra: int, fill: torch.Tensor) -> torch.Tensor:
+    """Each row of ``t`` with ``left[i]`` padding slots before it and ``extra - left[i]`` after,
+    filled with that row's ``fill`` value (``fill`` is [n, 1]; it may carry a gradient)."""
+    rows = [torch.cat([fill[i].expand(int(left[i])), t[i], fill[i].expand(extra - int(left[i]))])
+            for i in range(t.shape[0])]
+    return torch.stack(rows)
 
 
 def check_importance_weighted_surrogate(fn: Callable) -> None:
@@ -150,19 +163,23 @@ def check_importance_weighted_surrogate(fn: Callable) -> None:
     its probability under pi_old, must give the exact gradient of J at pi_new."""
     name = "importance_weighted_surrogate"
     gen = torch.Generator().manual_seed(2)
-    for case, (T, V, pad) in enumerate([(2, 2, 0), (3, 3, 2), (4, 2, 1)]):
+    # (T, V, padding slots per row, size of the policy change): the last case moves the policy
+    # far, so that sequence log-weights span several nats and a clipped or truncated weight fails
+    for case, (T, V, pad, move) in enumerate([(2, 2, 0, 0.4), (3, 3, 2, 0.4), (4, 2, 2, 1.5)]):
         policy = trust.SequencePolicy(T=T, V=V)
         theta_old = 0.5 * torch.randn(policy.n_params, generator=gen, dtype=torch.float64)
-        theta = (theta_old + 0.4 * torch.randn(policy.n_params, generator=gen, dtype=torch.float64))
+        theta = (theta_old + move * torch.randn(policy.n_params, generator=gen, dtype=torch.float64))
         theta.requires_grad_(True)
         reward = torch.rand(V ** T, generator=gen, dtype=torch.float64)
         logp_new = policy.token_log_probs(theta)
         logp_old = policy.token_log_probs(theta_old).detach()
         mask = torch.ones_like(logp_old)
-        if pad:  # padding positions hold junk and must be ignored
-            junk = torch.tensor([-3.0], dtype=torch.float64)
-            logp_new, logp_old = _padded(logp_new, pad, junk * 0.5), _padded(logp_old, pad, junk)
-            mask = _padded(mask, pad, torch.zeros(1, dtype=torch.float64))
+        if pad:  # padding must be ignored: it sits left and right, as much per row as it likes,
+            # and holds values that depend on theta, so a gradient through it shows
+            left = torch.randint(0, pad + 1, (logp_new.shape[0],), generator=gen)
+            logp_new = _pad_rows(logp_new, left, pad, 0.5 * logp_new.sum(-1, keepdim=True) - 1.0)
+            logp_old = _pad_rows(logp_old, left, pad, torch.full_like(logp_old[:, :1], -3.0))
+            mask = _pad_rows(mask, left, pad, torch.zeros_like(mask[:, :1]))
         args = dict(logp_new=logp_new, logp_old=logp_old, rewards=reward, mask=mask)
         got = _as_tensor(name, _run(name, fn, args))
         n = logp_new.shape[0]
@@ -221,7 +238,9 @@ def check_clip_fraction(fn: Callable) -> None:
     name = "clip_fraction"
     gen = torch.Generator().manual_seed(3)
     # sizes large enough that two different counting mistakes rarely give the same fraction
-    for N, T, eps_low, eps_high in [(24, 16, 0.2, 0.2), (32, 21, 0.2, 0.28), (20, 27, 0.1, 0.3)]:
+    # the second case has neither bound at 0.2, so bounds typed in as 0.2 are told apart from
+    # eps_low used on both sides
+    for N, T, eps_low, eps_high in [(24, 16, 0.2, 0.2), (20, 27, 0.1, 0.3), (32, 21, 0.2, 0.28)]:
         logp_old = -torch.rand(N, T, generator=gen) * 3
         logp_new = logp_old + 0.4 * torch.randn(N, T, generator=gen)
         advantages = torch.randn(N, generator=gen)
@@ -255,6 +274,9 @@ def check_clip_fraction(fn: Callable) -> None:
             "padding is counted: average over real tokens (the mask) only":
                 frac(((A > 0) & (ratio > 1 + eps_high)) | ((A < 0) & (ratio < 1 - eps_low)),
                      torch.ones_like(mask)),
+            "the bounds are typed in (0.2 on both sides) instead of taken from eps_low and "
+            "eps_high":
+                frac(((A > 0) & (ratio > 1.2)) | ((A < 0) & (ratio < 0.8))),
             "eps_low is used on both sides; the upper bound is 1 + eps_high (DAPO's clip-higher "
             "makes them differ)":
                 frac(((A > 0) & (ratio > 1 + eps_low)) | ((A < 0) & (ratio < 1 - eps_low))),

@@ -142,7 +142,12 @@ print("\nOne prompt, as the model sees it:\n" + train_prompts[0].text)
 #   (GPT-2, the `gpt2-rtx4070` preset's model) gives the shifted row different logits. Pass them
 #   always: the exercise's checker scores a GPT-2-style model too.
 # - **The completion mask.** Completions are right-padded after their end-of-sequence token.
-#   Those positions are not part of the completion and must get log-probability 0.
+#   Those positions are not part of the completion and must get log-probability 0. A model can
+#   have more than one end token: Qwen2.5-Instruct, lesson 7's model, ends a turn with
+#   `<|im_end|>` and also stops at `<|endoftext|>` (its generation config lists both), so a
+#   sampler that watches only one lets a completion run past its end. SmolLM2 here has one,
+#   which is why this lesson's exercises take a single id; the library's sampler takes the list
+#   (`models.eos_token_ids` reads it from the tokenizer and the generation config).
 #
 # ### Exercise 6.1 — completion log-probabilities
 #

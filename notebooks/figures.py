@@ -57,11 +57,11 @@ def _detectable(a: list[float], b: list[float], fmt: str = ".3f") -> str:
     return f"{stats.paired(a, b).detectable:{fmt}}"
 
 
-def _same_sign(a: list[float], b: list[float]) -> str:
-    """'every one of the 3' seeds when a - b has one sign on all of them, else 'k of n'."""
-    diffs = [x - y for x, y in zip(a, b)]
-    sign = max(sum(d > 0 for d in diffs), sum(d < 0 for d in diffs))
-    return f"every one of the {len(diffs)}" if sign == len(diffs) else f"{sign} of the {len(diffs)}"
+def _seeds_above(a: list[float], b: list[float]) -> str:
+    """On how many seeds arm a ended above arm b: 'every one of the 3', or 'k of the n' (the
+    prose says "above"; a rerun that flips the direction changes the count, not the word)."""
+    above = sum(x > y for x, y in zip(a, b))
+    return f"every one of the {len(a)}" if above == len(a) else f"{above} of the {len(a)}"
 
 
 def plan_figures() -> dict[str, str]:
@@ -149,7 +149,7 @@ def track_figures() -> dict[str, str]:
         "entropy.final_constant": f"{statistics.mean(rewards['constant 0.05']):.3f}",
         "entropy.final_none": f"{statistics.mean(rewards['none']):.3f}",
         "entropy.diff_constant_none": _paired(rewards["constant 0.05"], rewards["none"]),
-        "entropy.seeds_constant_none": _same_sign(rewards["constant 0.05"], rewards["none"]),
+        "entropy.seeds_constant_none": _seeds_above(rewards["constant 0.05"], rewards["none"]),
         # 4. KL schedule
         "kl.delta_plain": _mean_std(kl_delta["plain GRPO (no KL)"], "+.3f"),
         "kl.final_aware": f"{statistics.mean(kl_reward['reward-aware KL 0.04']):.3f}",
@@ -171,8 +171,10 @@ def track_figures() -> dict[str, str]:
         "grouping.cosine_grpo": f"{grpo['cosine']:.3f}",
         "grouping.final_batch": _mean_std(g_final["whole batch (the seed)"], ".3f"),
         "grouping.final_group": _mean_std(g_final["per-prompt groups (GRPO)"], ".3f"),
-        "grouping.diff": _paired(g_final["whole batch (the seed)"], g_final["per-prompt groups (GRPO)"]),
-        "grouping.detectable": _detectable(g_final["whole batch (the seed)"], g_final["per-prompt groups (GRPO)"]),
+        "grouping.diff": _paired(g_final["per-prompt groups (GRPO)"], g_final["whole batch (the seed)"]),
+        "grouping.detectable": _detectable(g_final["per-prompt groups (GRPO)"], g_final["whole batch (the seed)"]),
+        "grouping.seeds_batch_above": _seeds_above(g_final["whole batch (the seed)"],
+                                                   g_final["per-prompt groups (GRPO)"]),
         **retrieval_figures(),
     }
 
@@ -199,7 +201,7 @@ def retrieval_figures() -> dict[str, str]:
         "retrieval.p_joint": _mean_std(r["p_helpful"][joint], ".2f"),
         "retrieval.p_uniform": f"{1 / len(r['documents']):.2f}",
         "retrieval.diff_p": _paired(r["p_helpful"][joint], r["p_helpful"][alone], "+.2f"),
-        "retrieval.seeds_p": _same_sign(r["p_helpful"][joint], r["p_helpful"][alone]),
+        "retrieval.seeds_p": _seeds_above(r["p_helpful"][alone], r["p_helpful"][joint]),
         "retrieval.final_joint": _mean_std(r["final_reward"][joint], ".3f"),
         "retrieval.final_alone": _mean_std(r["final_reward"][alone], ".3f"),
         "retrieval.diff_reward": _paired(r["final_reward"][joint], r["final_reward"][alone]),
@@ -216,7 +218,11 @@ def cpu_run_figures() -> dict[str, str]:
 
     shaped = _json("cpu-shaped/config.json")
     known = {k: v for k, v in shaped.items() if k in Config.field_names()}
-    return {"cpu_shaped.steps": f"{Config.from_dict(known).total_steps}"}
+    ablation = _json("ablation/result.json")
+    first = [r["first_pass_step"] for arm in ablation["arms"].values() for r in arm["runs"]]
+    return {"cpu_shaped.steps": f"{Config.from_dict(known).total_steps}",
+            # the earliest step at which any ablation run sampled a pass (None: never)
+            "ablation.earliest_first_pass": f"{min(s for s in first if s is not None)}"}
 
 
 def data_figures() -> dict[str, str]:

@@ -25,6 +25,8 @@ def test_t4_preset_needs_a_gpu_for_fp16_and_says_so():
     (dict(temperature=0.0), "temperature", "from 0.01 to 10"),
     (dict(lr=-1e-5), "lr", "> 0"),
     (dict(loss_type="mean"), "loss_type", "grpo, bnpo, dapo, dr_grpo"),
+    (dict(target_sampling="prioritized", dynamic_sampling=True), "target_sampling", "dynamic sampling"),
+    (dict(entropy_bonus="adaptive"), "entropy_coef", "adaptive"),
     (dict(reward="dense"), "reward", "binary, shaped"),
     (dict(clip_eps_low=1.5), "clip_eps_low", "(0, 1)"),
     (dict(grad_accum=3), "grad_accum", "divide prompts_per_step"),

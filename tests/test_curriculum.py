@@ -63,3 +63,26 @@ def test_adaptive_entropy_turns_on_below_the_target_and_off_above():
     restored = losses.AdaptiveEntropy(1.0, 0.01, 0.025)
     restored.load_state_dict(ctl.state_dict())
     assert (restored.coef, restored.entropy) == (ctl.coef, ctl.entropy)
+
+
+def test_one_update_per_target_and_step_whatever_the_order_of_the_groups():
+    prompts = pool()
+    threes = [p for p in prompts if p.target_digit_sum == 3][:2]
+    a, b = curriculum.TargetPriority(prompts), curriculum.TargetPriority(prompts)
+    flags = torch.tensor([1.0, 1.0, 0.0, 0.0])       # G = 2: the first group passes, the second fails
+    a.observe(threes, flags, group_size=2)
+    b.observe(threes[::-1], torch.tensor([0.0, 0.0, 1.0, 1.0]), group_size=2)
+    assert a.pass_rate[3] == b.pass_rate[3] == 0.5   # both groups' samples, averaged at once
+
+
+def test_bad_settings_and_a_changed_pool_are_handled():
+    with pytest.raises(ValueError, match="momentum"):
+        curriculum.TargetPriority(pool(), momentum=1.0)
+    with pytest.raises(ValueError, match="at least one training prompt"):
+        curriculum.TargetPriority([])
+    old = curriculum.TargetPriority(pool(targets=(3, 5)))
+    old.observe(pool(targets=(3,))[:1], torch.ones(2), group_size=2)
+    new = curriculum.TargetPriority(pool(targets=(3, 7)))   # 5 gone, 7 new
+    new.load_state_dict(old.state_dict())
+    assert new.pass_rate == {3: 1.0, 7: 0.0} and new.seen == {3: True, 7: False}
+    assert len(new.weights()) == 2

@@ -109,3 +109,12 @@ def test_the_t4_plan_figures_match_a_hand_computation():
     # 494,032,768 parameters x (4 + 4 + 8 + 2) bytes = 8.28 GiB, the issue's corrected figure
     assert known["plan.persistent_gib"] == f"{494_032_768 * 18 / 2 ** 30:.1f}" == "8.3"
     assert known["plan.logits_mb_per_token"] == f"{151_936 * 4 / 1e6:.1f}"
+
+
+def test_no_control_character_hides_in_a_lesson_or_the_readme():
+    """A backslash lost in an edit turns LaTeX's \\tfrac or \\top into a TAB and 'frac'/'op'; the
+    rendered math breaks silently. Only newlines may appear among the control characters."""
+    paths = LESSONS + [ROOT / "README.md"]
+    bad = [(p.name, n) for p in paths for n, line in enumerate(p.read_text().splitlines(), 1)
+           if re.search(r"[\x00-\x08\x0b-\x1f\x7f]", line)]
+    assert not bad, f"control characters at (file, line): {bad}"

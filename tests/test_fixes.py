@@ -408,7 +408,8 @@ def test_the_lessons_reading_of_the_ablation_matches_its_stored_results():
     # the verdicts are paired and recomputed from the per-seed values, not typed: dynamic
     # sampling identical on every seed, the sharp reward's difference not detectable by 3 seeds
     assert stored["verdicts"] == ablation.comparisons(stored)
-    ds_line, _, sharp_line, _ = stored["verdicts"]
+    ds_line, _, sharp_line, _, sharp_vs_ds, _ = stored["verdicts"]
+    assert "minus the arm 'with dynamic sampling'," in sharp_vs_ds and "no difference detected" in sharp_vs_ds
     assert ds_line.endswith("identical on every seed")
     assert "no difference detected" in sharp_line and "2 df" in sharp_line
     # two-digit passes: within a run, all write the same fixed number
@@ -440,3 +441,21 @@ def test_the_stored_ablation_report_is_its_result_rerendered(tmp_path):
         json.loads((stored / "result.json").read_text())
     with pytest.raises(SystemExit, match="needs"):
         ablation.main(["--rerender", "--out", str(tmp_path / "nowhere")])
+
+
+def test_ablation_comparisons_skip_seeds_without_the_target_and_missing_arms():
+    from course_utils import ablation
+
+    def run(p, two):
+        return dict(pass_both=p, pass_both_two_digit=two)
+
+    result = {"arms": {
+        ablation.FULL: dict(dirs=["x/seed0", "x/seed1", "x/seed2"],
+                            runs=[run(0.5, 0.1), run(0.6, float("nan")), run(0.7, 0.3)]),
+        "with dynamic sampling": dict(dirs=["y/seed0", "y/seed1", "y/seed2"],
+                                      runs=[run(0.5, 0.2), run(0.7, float("nan")), run(0.9, 0.3)])}}
+    both, two = ablation.comparisons(result)
+    assert "seeds 0, 1, 2:" in both
+    assert "seeds 0, 2 (no such target on seed(s) 1)" in two
+    del result["arms"][ablation.FULL]
+    assert ablation.comparisons(result) == []      # nothing to compare against: no KeyError

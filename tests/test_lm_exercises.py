@@ -5,6 +5,7 @@ import torch
 
 from course_utils import losses
 from course_utils.exercises import ExerciseError
+from course_utils.lm_exercises import _batch, _model
 from course_utils.lm_exercises import (check_completion_logprobs, check_grpo_backward,
                                        check_sample_group)
 from course_utils.rollout import completion_logprobs as library_logprobs
@@ -54,10 +55,21 @@ def logprobs_library(model, prompt_ids, prompt_mask, completion_ids, completion_
                             temperature=temperature)[0] * completion_mask
 
 
-@pytest.mark.parametrize("answer", [logprobs_sliced, logprobs_logsumexp, logprobs_library,
-                                    lambda *a: logprobs_sliced(*a, positions=False)])
+@pytest.mark.parametrize("answer", [logprobs_sliced, logprobs_logsumexp, logprobs_library])
 def test_completion_logprobs_accepts_correct_answers(answer):
     check_completion_logprobs(answer)
+
+
+def test_position_ids_are_caught_on_the_absolute_position_model():
+    """Without position ids a rotary model (Qwen2) gives the same logits, a GPT-2 does not: the
+    checker's GPT-2 batch names the mistake."""
+    with pytest.raises(ExerciseError, match="position ids ignore the left padding"):
+        check_completion_logprobs(lambda *a: logprobs_sliced(*a, positions=False))
+    qwen2 = _model(seed=0, sharpen=8.0)           # the checker's first, rotary batch
+    g = torch.Generator().manual_seed(0)
+    batch = _batch(g, 64, 3, 5, 4, 2)
+    same = torch.allclose(logprobs_sliced(qwen2, *batch, 1.0), logprobs_sliced(qwen2, *batch, 1.0, positions=False), atol=1e-4)
+    assert same   # why the GPT-2 batch is needed: on Qwen2 the mistake is invisible
 
 
 def _mutating(model, prompt_ids, prompt_mask, completion_ids, completion_mask, temperature):
@@ -92,9 +104,11 @@ def test_completion_logprobs_refuses_an_answer_that_changes_its_inputs():
 
 def sample_loop(model, prompt_ids, G, max_new_tokens, eos_id, temperature, generator, *,
                 grad=False, cache=True, mask_rule="first eos", score_temperature=True,
-                sample_temperature=True):
+                sample_temperature=True, detach=False, use_generator=True, pad_after_eos=True,
+                early_stop=True, top_p=None):
     """A correct answer (a cache per row), and through its options the wrong ones."""
-    with torch.set_grad_enabled(grad):
+    generator = generator if use_generator else None
+    with torch.set_grad_enabled(grad or detach):
         ids = prompt_ids.expand(G, -1)
         out = model(input_ids=ids, use_cache=cache)
         logits = out.logits[:, -1].float()
@@ -103,14 +117,19 @@ def sample_loop(model, prompt_ids, G, max_new_tokens, eos_id, temperature, gener
         for t in range(max_new_tokens):
             scaled = logits / temperature
             draw = torch.softmax(scaled if sample_temperature else logits, -1)
+            if top_p is not None:   # keep the smallest set of tokens holding top_p of the mass
+                sorted_p, order = draw.sort(-1, descending=True)
+                outside = sorted_p.cumsum(-1) - sorted_p >= top_p
+                draw = draw.scatter(-1, order, sorted_p.masked_fill(outside, 0.0))
             token = torch.multinomial(draw, 1, generator=generator).squeeze(-1)
-            token = torch.where(done, torch.full_like(token, eos_id), token)
+            if pad_after_eos:
+                token = torch.where(done, torch.full_like(token, eos_id), token)
             logp = torch.log_softmax(scaled if score_temperature else logits, -1)
             chosen = logp.gather(-1, token[:, None]).squeeze(-1)
             logps.append(torch.where(done, torch.zeros_like(chosen), chosen))
             tokens.append(token)
             done = done | (token == eos_id)
-            if done.all():
+            if done.all() and early_stop:
                 break
             if cache:
                 out = model(input_ids=token[:, None], past_key_values=out.past_key_values,
@@ -125,7 +144,10 @@ def sample_loop(model, prompt_ids, G, max_new_tokens, eos_id, temperature, gener
         mask = {"first eos": (before == 0).long(), "not pad": 1 - is_eos,
                 "exclude eos": ((before == 0) & (is_eos == 0)).long(),
                 "all": torch.ones_like(ids)}[mask_rule]
-        return ids, mask, logps * mask if mask_rule == "first eos" else logps
+        logps = logps * mask if mask_rule == "first eos" else logps
+        if detach:   # built the graph of every step, then threw it away
+            ids, mask, logps = ids.detach(), mask.detach(), logps.detach()
+        return ids, mask, logps
 
 
 def sample_with_library(model, prompt_ids, G, max_new_tokens, eos_id, temperature, generator):
@@ -150,6 +172,11 @@ WRONG_SAMPLERS = [
     (dict(score_temperature=False), "log-probs are of the untempered distribution"),
     (dict(sample_temperature=False), "sample from the tempered distribution"),
     (dict(cache=False), "key/value cache"),
+    (dict(detach=True), "run the loop under torch.no_grad"),          # grad on, outputs detached
+    (dict(use_generator=False), "generators seeded alike"),
+    (dict(pad_after_eos=False), "other than EOS after its first EOS"),
+    (dict(early_stop=False), "stop the loop once every row"),
+    (dict(top_p=0.95), "no top-k or top-p cut"),
 ]
 
 
@@ -250,3 +277,74 @@ def test_sample_group_and_grpo_backward_refuse_answers_that_change_their_inputs(
         check_grpo_backward(centring_in_place)
     with pytest.raises(ExerciseError, match="changed its input `prompt_ids` in place"):
         check_sample_group(padding_in_place)
+
+
+# --- exercise 3: answers that get the gradient right the wrong way (issue 25) ------------------
+
+def _full_batch_loss(model, prompt_ids, prompt_mask, completion_ids, completion_mask, advantages,
+                     temperature, loss_type, rows=slice(None)):
+    lp = logprobs_sliced(model, prompt_ids[rows], prompt_mask[rows], completion_ids[rows],
+                         completion_mask[rows], temperature)
+    loss, _ = losses.grpo_loss(lp, lp.detach(), advantages[rows], completion_mask[rows],
+                               loss_type=loss_type, total_sequences=completion_ids.shape[0],
+                               total_tokens=completion_mask.sum(),
+                               max_completion_length=completion_ids.shape[1])
+    return loss
+
+
+def one_full_batch_backward(model, prompt_ids, prompt_mask, completion_ids, completion_mask,
+                            advantages, temperature, micro_rows, loss_type):
+    """Right gradient, no micro-batching at all: micro_rows is ignored."""
+    loss = _full_batch_loss(model, prompt_ids, prompt_mask, completion_ids, completion_mask,
+                            advantages, temperature, loss_type)
+    loss.backward()
+    return loss.item()
+
+
+def one_forward_then_sliced_backwards(model, prompt_ids, prompt_mask, completion_ids,
+                                      completion_mask, advantages, temperature, micro_rows, loss_type):
+    """One forward over every row, then a backward per slice of its loss (retain_graph)."""
+    N = completion_ids.shape[0]
+    lp = logprobs_sliced(model, prompt_ids, prompt_mask, completion_ids, completion_mask, temperature)
+    total = 0.0
+    for start in range(0, N, micro_rows):
+        rows = slice(start, start + micro_rows)
+        loss, _ = losses.grpo_loss(lp[rows], lp[rows].detach(), advantages[rows], completion_mask[rows],
+                                   loss_type=loss_type, total_sequences=N,
+                                   total_tokens=completion_mask.sum(),
+                                   max_completion_length=completion_ids.shape[1])
+        loss.backward(retain_graph=True)
+        total += loss.item()
+    return total
+
+
+def summed_then_one_backward(model, prompt_ids, prompt_mask, completion_ids, completion_mask,
+                             advantages, temperature, micro_rows, loss_type):
+    """Micro-batched forwards, but the losses added up and backpropagated once."""
+    total = 0
+    for start in range(0, completion_ids.shape[0], micro_rows):
+        total = total + _full_batch_loss(model, prompt_ids, prompt_mask, completion_ids,
+                                         completion_mask, advantages, temperature, loss_type,
+                                         slice(start, start + micro_rows))
+    total.backward()
+    return total.item()
+
+
+def zeroed_first(model, *args):
+    """Correct, except that it clears .grad before starting."""
+    model.zero_grad()
+    return backward_by_hand(model, *args)
+
+
+HIDDEN_BACKWARDS = [
+    (one_full_batch_backward, "rows in one forward"),
+    (one_forward_then_sliced_backwards, "rows in one forward"),
+    (summed_then_one_backward, "backward pass\\(es\\) for"),
+    (zeroed_first, "zeroed before the first micro-batch"),
+]
+
+
+@pytest.mark.parametrize("answer, diagnosis", HIDDEN_BACKWARDS, ids=[d for _, d in HIDDEN_BACKWARDS])
+def test_grpo_backward_refuses_a_right_gradient_computed_without_micro_batches(answer, diagnosis):
+    with pytest.raises(ExerciseError, match=diagnosis):
+        check_grpo_backward(answer)

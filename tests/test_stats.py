@@ -65,7 +65,7 @@ def test_planted_difference_is_found_at_the_stated_rate():
 def test_verdict_names_the_detectable_difference_and_shows_every_seed():
     cmp = stats.paired([0.1, 0.5, 0.2], [0.3, 0.2, 0.4])
     text = cmp.verdict()
-    assert "no difference detected" in text and "detects about" in text
+    assert "no difference detected" in text and "would detect about" in text
     for d in cmp.diffs:
         assert f"{d:+.3f}" in text
     assert "2 df" in text
@@ -76,7 +76,22 @@ def test_verdict_names_the_detectable_difference_and_shows_every_seed():
     # cannot go below 0.25, and the verdict says the call rests on normality
     few = stats.paired([1.0, 1.1, 0.95], [0.0, 0.05, 0.02]).verdict()
     assert "excludes 0: a difference if the per-seed differences are roughly normal" in few
-    assert "cannot confirm with 3 seeds" in few
+    assert "it cannot go below 0.25 with 3 seeds" in few
+    # the other disagreement: six differences of one sign, one far out, widen the t-interval
+    skewed = stats.paired([1, 1, 1, 1, 1, 10], [0] * 6)
+    assert skewed.p_value == 2 / 2 ** 6 and skewed.interval[0] < 0
+    assert "includes 0 but the sign-flip test finds a difference" in skewed.verdict()
+
+
+def test_the_sign_flip_floor_counts_only_seeds_that_differ():
+    """A zero difference has no sign to flip: with two of three seeds differing the smallest
+    possible p is 0.5, and with one it is 1, which the verdict must say."""
+    two = stats.paired([0.0, -0.078, -0.125], [0.0, 0.0, 0.0])
+    assert two.p_floor == 0.5 and two.p_value == 0.5
+    assert "smallest possible with 2 of 3 seeds differing: 0.5" in two.verdict()
+    one = stats.paired([0.0, 0.0, -0.333], [0.0, 0.0, 0.0])
+    assert one.p_floor == 1.0 == one.p_value
+    assert stats.paired([1.0, 2.0, 3.0], [0.0, 1.0, 1.0]).p_floor == 0.25
 
 
 def test_interval_by_hand():

@@ -107,3 +107,10 @@ def test_the_passing_example_document_passes_the_checker_for_every_target(target
     for digit_sum in range(0, 19):
         reply = tracks.valid_reply(target_chars, digit_sum)
         assert tracks.train.rewards.check(reply, target_chars, digit_sum).passed, (reply, digit_sum)
+
+
+def test_rerendering_a_report_without_its_comparison_lines_is_refused(tmp_path):
+    (tmp_path / "result.json").write_text('{"final_reward": {}}')
+    (tmp_path / "report.md").write_text("a table, and no verdict\n")
+    with pytest.raises(ValueError, match="no comparison line"):
+        tracks.rerender_verdicts("grouping", tmp_path)

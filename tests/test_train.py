@@ -320,11 +320,26 @@ def test_an_apple_gpu_is_not_taken_for_a_cpu(monkeypatch):
     assert train.runs_on_cpu(load_config("smoke"))
 
 
-def test_adaptive_entropy_and_prioritized_targets_resume_exactly(resume_pair):
+def test_adaptive_entropy_and_prioritized_targets_resume_exactly(resume_pair, monkeypatch):
     """Both carry state from step to step (the entropy coefficient, the pass rate per target):
-    a run stopped and resumed must draw the same batches and weights as one that never stopped."""
+    a run stopped and resumed must draw the same batches and weights as one that never stopped.
+    The tiny model never passes, so 'passed' is made the upper half of each batch's rewards:
+    pass rates then differ by target, and a resume that lost them would draw other batches."""
+    score = train.score
+
+    def half_pass(prompts, texts, reward_name):
+        s = score(prompts, texts, reward_name)
+        s["passed"] = (s["rewards"] > s["rewards"].median()).float()
+        return s
+
+    monkeypatch.setattr(train, "score", half_pass)
+    seen = []
+    observe = train.curriculum.TargetPriority.observe
+    monkeypatch.setattr(train.curriculum.TargetPriority, "observe",
+                        lambda self, *a, **k: (observe(self, *a, **k), seen.append(dict(self.pass_rate))))
     (ra, rb), (a, b) = resume_pair(entropy_bonus="adaptive", entropy_coef=0.01, entropy_target=20.0,
                                    target_sampling="prioritized")
+    assert any(0 < v < 1 for rates in seen for v in rates.values())   # the state is not trivial
     weights = [r["entropy_weight"] for r in ra]
     assert weights[0] == 0.0 and weights[1] == pytest.approx(0.01) and weights[2] == pytest.approx(0.02)
     for key in ("entropy_weight", "reward_mean", "samples_two_digit", "loss"):

@@ -132,6 +132,12 @@ def fisher_by_loop(log_prob_fn, theta):
     return F
 
 
+def fisher_by_loop_in_float32(log_prob_fn, theta):
+    """Correct, built in float32 (the default dtype when the lesson's cell is re-run later):
+    right to float32's precision."""
+    return fisher_by_loop(log_prob_fn, theta).float()
+
+
 def fisher_by_kl_hessian(log_prob_fn, theta):
     """Correct, written differently: the Hessian of KL(pi_theta || pi_theta+delta) at delta = 0."""
     base = log_prob_fn(theta).detach()
@@ -140,7 +146,7 @@ def fisher_by_kl_hessian(log_prob_fn, theta):
 
 
 @pytest.mark.parametrize("answer", [fisher_by_jacobian, fisher_by_loop, fisher_by_kl_hessian,
-                                    trust.fisher_matrix])
+                                    fisher_by_loop_in_float32, trust.fisher_matrix])
 def test_fisher_checker_accepts_correct_answers(answer):
     check_fisher_matrix(answer)
 
@@ -186,12 +192,13 @@ def _fisher_wrong(kind):
         F = (J * logp.exp()[:, None]).T @ J
         return {"unweighted": J.T @ J, "logp": (J * logp[:, None]).T @ J,
                 "mean": torch.outer(logp.exp() @ J, logp.exp() @ J), "diag": torch.diag(torch.diag(F)),
-                "sign": -F}[kind]
+                "sign": -F, "zeros": torch.zeros_like(F), "squeezed": F.squeeze()}[kind]
     return answer
 
 
 WRONG_FISHER = [("unweighted", "every outcome counts the same"), ("logp", "log-probabilities"),
-                ("mean", "expected\\* score"), ("diag", "only the diagonal"), ("sign", "sign is flipped")]
+                ("mean", "expected\\* score"), ("zeros", "all zeros"), ("diag", "only the diagonal"),
+                ("sign", "sign is flipped"), ("squeezed", "squeeze")]
 
 
 @pytest.mark.parametrize("kind, diagnosis", WRONG_FISHER, ids=[k for k, _ in WRONG_FISHER])
@@ -247,6 +254,28 @@ def _is_wrong(kind):
     return answer
 
 
+def _is_hidden_wrong(kind):
+    """Answers right on narrow checks: a clipped weight, gradient through the padding, and a
+    slice that assumes right padding of one width."""
+    def answer(logp_new, logp_old, rewards, mask):
+        if kind == "clamped":
+            log_w = ((logp_new - logp_old) * mask).sum(-1).clamp(-1.0, 1.0)
+            return torch.exp(log_w) * rewards
+        if kind == "padding gradient":   # the weight from the real tokens, the score from all
+            w = torch.exp(((logp_new - logp_old) * mask).sum(-1)).detach()
+            return w * rewards * logp_new.sum(-1)
+        T = int(mask.sum(-1).max())       # "the real tokens are the first T columns"
+        delta = (logp_new - logp_old)[:, :T]
+        return torch.exp(delta.sum(-1)) * rewards
+    return answer
+
+
+@pytest.mark.parametrize("kind", ["clamped", "padding gradient", "right padding assumed"])
+def test_importance_checker_refuses_answers_a_narrow_check_would_pass(kind):
+    with pytest.raises(ExerciseError):
+        check_importance_weighted_surrogate(_is_hidden_wrong(kind))
+
+
 WRONG_IS = [("per-token sum", "sum of per-token ratios"), ("per-token mean", "mean of per-token ratios"),
             ("no weight", "no importance weight"), ("inverted", "weight is inverted"),
             ("padding", "padding is counted"), ("mean", "one value per sequence"),
@@ -264,6 +293,8 @@ def _clip_wrong(kind):
         ratio, A = torch.exp(logp_new - logp_old), advantages[:, None]
         over = mask if kind != "padding" else torch.ones_like(mask)
         hi = eps_low if kind == "eps_low" else eps_high
+        if kind == "typed":
+            eps_low, hi = 0.2, 0.2
         x = ratio.log() if kind == "log" else ratio
         if kind == "both sides":
             flags = (ratio > 1 + eps_high) | (ratio < 1 - eps_low)
@@ -275,7 +306,7 @@ def _clip_wrong(kind):
     return answer
 
 
-WRONG_CLIP = [("both sides", "every ratio outside"), ("zero", "A = 0 are counted"),
+WRONG_CLIP = [("typed", "bounds are typed in"), ("both sides", "every ratio outside"), ("zero", "A = 0 are counted"),
               ("padding", "padding is counted"), ("eps_low", "eps_low is used on both sides"),
               ("log", "log-ratio is compared")]
 

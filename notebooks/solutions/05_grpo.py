@@ -342,7 +342,7 @@ assert not torch.allclose(grad_forward, grad_reverse, atol=1e-3)
 # |---|---|---|
 # | `grpo` | mean over a completion's tokens, then over completions | DeepSeekMath |
 # | `dapo` | sum over all tokens / number of real tokens in the batch | DAPO, TRL's default |
-# | `bnpo` | each micro-batch's token mean, averaged over micro-batches (equal to `dapo` without accumulation) | TRL's `bnpo` |
+# | `bnpo` | each micro-batch's token mean, averaged over micro-batches (equal to `dapo` with one micro-batch on one process) | TRL's `bnpo` |
 # | `dr_grpo` | sum over all tokens / (completions x max length): a constant | Dr. GRPO |
 #
 # ### Exercise 5.4 — aggregation

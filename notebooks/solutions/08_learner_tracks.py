@@ -218,11 +218,11 @@ experiment(tracks.entropy, "entropy")
 # | constant 0.05 | never, 8, 7 | 0.640 ± 0.043 | 5.491 ± 0.253 |
 # | inverse variance (1e-3 / Var) | never, never, never | 0.574 ± 0.046 | 5.972 ± 0.278 |
 #
-# inverse variance vs none (final reward): per-seed differences [+0.017, -0.041, +0.004], mean -0.006, 95% t-interval [-0.082, +0.069] (2 df), sign-flip p = 1 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.094 at 80% power, estimated from the observed spread)
+# inverse variance vs none (final reward): per-seed differences [+0.017, -0.041, +0.004], mean -0.006, 95% t-interval [-0.082, +0.069] (2 df), sign-flip p = 1 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 0.094 at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
 #
-# inverse variance vs constant (final reward): per-seed differences [-0.024, -0.112, -0.061], mean -0.065, 95% t-interval [-0.176, +0.045] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.137 at 80% power, estimated from the observed spread)
+# inverse variance vs constant (final reward): per-seed differences [-0.024, -0.112, -0.061], mean -0.065, 95% t-interval [-0.176, +0.045] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 0.137 at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
 #
-# constant vs none (final reward): per-seed differences [+0.041, +0.071, +0.065], mean +0.059, 95% t-interval [+0.019, +0.099] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval excludes 0: a difference if the per-seed differences are roughly normal, which the sign-flip test, p = 0.25, cannot confirm with 3 seeds
+# constant vs none (final reward; a comparison chosen after seeing the results): per-seed differences [+0.041, +0.071, +0.065], mean +0.059, 95% t-interval [+0.019, +0.099] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval excludes 0: a difference if the per-seed differences are roughly normal, which the sign-flip test does not confirm: it cannot go below 0.25 with 3 seeds
 #
 # ![entropy: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/entropy/curves.png)
 #
@@ -238,9 +238,12 @@ experiment(tracks.entropy, "entropy")
 # the table; it is the first experiment under "Your turn" below. The constant bonus ended
 # highest (0.640 against 0.581), above no bonus on
 # every one of the 3 seeds; paired, the difference is
-# +0.059, 95% t-interval [+0.019, +0.099]. The t-interval excludes 0, but it leans on the per-seed
-# differences being roughly normal, and the sign-flip test, which does not, cannot go below its
-# floor with three seeds (the report's last line): a lead to test on more seeds, not a finding.
+# +0.059, 95% t-interval [+0.019, +0.099]. Read that with two cautions, both in the report's last
+# line: the comparison was chosen after the results were seen (the track set out to test the
+# inverse-variance arm, and this is one of its three comparisons; a correction for three would
+# widen the interval), and the t-interval leans on the per-seed differences being roughly
+# normal, which the sign-flip test, with three seeds, cannot confirm. A lead to test on more
+# seeds, not a finding.
 # A T4 run
 # (640 steps, Qwen2.5-0.5B) would show whether the extra entropy pays off late, when plain
 # GRPO's entropy collapses (lesson 7, section 6.1, shows such a collapse in its stored runs).
@@ -279,9 +282,9 @@ experiment(tracks.kl_schedule, "kl")
 # | constant KL 0.04 | 0.597 ± 0.057 | 0.005 ± 0.004 | 37 of 96 |
 # | reward-aware KL 0.04 | 0.612 ± 0.010 | 0.001 ± 0.002 | 32 of 96 |
 #
-# reward-aware vs constant KL (Δ log-likelihood): per-seed differences [+0.002, -0.003, -0.010], mean -0.004, 95% t-interval [-0.018, +0.011] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.018 at 80% power, estimated from the observed spread)
+# reward-aware vs constant KL (Δ log-likelihood): per-seed differences [+0.002, -0.003, -0.010], mean -0.004, 95% t-interval [-0.018, +0.011] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 0.018 at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
 #
-# reward-aware KL vs plain (final reward): per-seed differences [-0.005, +0.016, +0.083], mean +0.031, 95% t-interval [-0.083, +0.145] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.142 at 80% power, estimated from the observed spread)
+# reward-aware KL vs plain (final reward): per-seed differences [-0.005, +0.016, +0.083], mean +0.031, 95% t-interval [-0.083, +0.145] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 0.142 at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
 #
 # ![kl: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/kl/curves.png)
 #
@@ -340,7 +343,7 @@ experiment(tracks.grouping, "grouping")
 # | per-prompt groups (GRPO) | 0.581 ± 0.045 |
 # | whole batch (the seed) | 0.630 ± 0.075 |
 #
-# per-prompt vs whole batch: per-seed differences [-0.104, -0.012, -0.034], mean -0.050, 95% t-interval [-0.168, +0.069] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.148 at 80% power, estimated from the observed spread)
+# per-prompt vs whole batch: per-seed differences [-0.104, -0.012, -0.034], mean -0.050, 95% t-interval [-0.168, +0.069] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 0.148 at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
 #
 # ![grouping: curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/tracks/grouping/curves.png)
 #
@@ -355,9 +358,11 @@ experiment(tracks.grouping, "grouping")
 # per prompt without the std (Dr. GRPO) keeps the low noise *and* the exact direction (its average
 # is exactly (G-1)/G of the gradient; the tests check the 8/7 rescaling). On the real task the
 # learning curves show **no difference detected**: whole-batch normalization ended at
-# 0.630 ± 0.075, per-prompt groups at 0.581 ± 0.045 (whole batch
-# minus per-prompt, paired by seed: +0.050, 95% t-interval [-0.069, +0.168]); three seeds could have detected a
-# difference of about 0.148, so smaller effects remain possible. What a T4 run would add: openwebtext prompts, whose
+# 0.630 ± 0.075, per-prompt groups at 0.581 ± 0.045 (per-prompt
+# minus whole batch, paired by seed: -0.050, 95% t-interval [-0.168, +0.069]); a t-test on three seeds would
+# detect roughly 0.148, so smaller effects remain possible. Whole-batch
+# normalization ended higher on every one of the 3 seeds: like the entropy
+# track's constant bonus, a lead for more seeds, not a finding. What a T4 run would add: openwebtext prompts, whose
 # difficulty varies far more than the course's snippets, and enough steps for a bias of a few
 # percent in direction to compound.
 
@@ -440,9 +445,9 @@ experiment(tracks.retrieval, "retrieval")
 # | joint (retriever learns) | 0.633 ± 0.045 | 0.181 ± 0.040 | 14.385 ± 1.625 |
 # | generator only (uniform retriever) | 0.617 ± 0.022 | 0.250 ± 0.000 | 15.673 ± 0.349 |
 #
-# joint vs generator only, reward: per-seed differences [+0.054, +0.034, -0.039], mean +0.016, 95% t-interval [-0.105, +0.137] (2 df), sign-flip p = 0.75 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.151 at 80% power, estimated from the observed spread)
+# joint vs generator only, reward: per-seed differences [+0.054, +0.034, -0.039], mean +0.016, 95% t-interval [-0.105, +0.137] (2 df), sign-flip p = 0.75 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 0.151 at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
 #
-# joint vs generator only, P(passing example): per-seed differences [-0.036, -0.113, -0.058], mean -0.069, 95% t-interval [-0.168, +0.029] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (this design detects about 0.123 at 80% power, estimated from the observed spread)
+# joint vs generator only, P(passing example): per-seed differences [-0.036, -0.113, -0.058], mean -0.069, 95% t-interval [-0.168, +0.029] (2 df), sign-flip p = 0.25 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 0.123 at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
 #
 # the retriever's update took 0.9 ms a step
 #
@@ -477,7 +482,7 @@ experiment(tracks.retrieval, "retrieval")
 # (5) is **not supported**. After 8 steps the joint retriever gave the
 # passing example a probability of 0.18 ± 0.04, *below* the uniform
 # 0.25 on every one of the 3 seeds (paired difference
-# -0.07, 95% t-interval [-0.17, +0.03]: not above 0, and with three seeds not a detected drop either), and
+# -0.07, 95% t-interval [-0.17, +0.03]: its interval includes 0, so neither a rise nor a detected drop), and
 # the reward showed no difference (joint 0.633 ± 0.045, generator alone
 # 0.617 ± 0.022, paired difference +0.016, 95% t-interval [-0.105, +0.137]). The last table says why: for this 135M generator the
 # documents hardly mattered (mean reward 0.545 to 0.578 by document, and the

@@ -209,7 +209,9 @@ print(f"every start puts at least {largest_pi:.3f} of its probability on one of 
 for lr in (10.0, 100.0):
     print(f"plain gradient ascent with lr {lr:g} on seed 0: {ascend(starts[0], vanilla, lr=lr)[0]} steps")
 spread = torch.tensor([0.3, -0.2, 0.1, 0.4])
-print(f"plain gradient ascent with lr 100 from a spread-out start: {ascend(spread, vanilla, lr=100.0)[0]} step(s)")
+spread_steps = ascend(spread, vanilla, lr=100.0)[0]
+print(f"plain gradient ascent with lr 100 from a spread-out start: {spread_steps} step(s)")
+assert spread_steps <= 2   # the prose below: a large rate is not punished here
 for label, theta in (("spread out", spread), ("seed 0, near-deterministic", starts[0])):
     g, nat = vanilla(theta), natural(theta)
     pi = trust.bandit_log_probs(theta).exp()
@@ -234,15 +236,15 @@ assert all(n < v for (n, _), (v, _) in zip(results["natural"], results["vanilla"
 # policy is, by the ratio of the gradient lengths in the last lines. The natural gradient's
 # *direction and length* do not: $F^{-1}g$ is the same vector at both starts, the reward gaps.
 # What depends on the policy is the KL its step costs, to second order
-# $	frac12\,\mathrm{lr}^2\,g^	op F^{-1} g$, and for the softmax bandit
-# $g^	op F^{-1} g = \mathrm{Var}_\pi(r)$ exactly (the cell checks it): near a deterministic
+# $\tfrac12\,\mathrm{lr}^2\,g^\top F^{-1} g$, and for the softmax bandit
+# $g^\top F^{-1} g = \mathrm{Var}_\pi(r)$ exactly (the cell checks it): near a deterministic
 # policy the same natural step is a far smaller move in distribution. Section 3 shows what that
 # does to a step scaled to a fixed KL.
 #
 # ### Invariance
 #
 # The same geometry makes the natural gradient's step independent of the parametrization, exactly
-# for a linear one and to first order for any smooth one. Write the logits as
+# for a linear one and to first order for any smooth one with an invertible Jacobian. Write the logits as
 # $\theta = A\varphi$ for an invertible matrix $A$. The policy is the same, but the plain
 # gradient with respect to $\varphi$ is $A^\top g$, so a step in $\varphi$ moves $\theta$ by
 # $AA^\top g$: a different policy. For the natural gradient, $F_\varphi = A^\top F_\theta A$, and the

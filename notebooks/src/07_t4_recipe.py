@@ -56,7 +56,9 @@ if GPU and "T4" not in GPU:
 # ablation did not find helpful), and a KL term: `kl_coef=0`. That is a decision on cost with
 # thin evidence either way: the term costs a reference forward per step and DAPO drops it,
 # lesson 8's KL track is too short to test whether it helps, and the one probe in section 6.3
-# that had it kept the policy exploring where its twin without it collapsed onto one sentence.
+# that had it kept the policy exploring where its twin without it collapsed onto one sentence;
+# but that probe ran on the course's earlier recipe (the sharp reward, dynamic sampling, a
+# lower temperature), on one seed, was stopped early, and had sampled no pass by then.
 # If distinct completions collapse or the model's language degrades over a long run,
 # `kl_coef=0.04` (DeepSeekMath's value) is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
 # prompts, fp32, three steps.
@@ -314,8 +316,9 @@ for key, value in mine.items():
 # Until some completion passes, this is the shaped reward times 2/3, and group standardization
 # removes a common factor, so the advantages are the shaped reward's up to the small constant
 # added to each group's standard deviation to keep it finite (`tests/test_fixes.py` checks the
-# equality with that constant made tiny). With the training constant the two differ in the
-# last digits, sampling then amplifies the difference, and the two runs part: compare the
+# equality with that constant made tiny). With the training constant the two differ slightly
+# (relatively, by about the constant over the group's standard deviation), sampling then
+# amplifies the difference, and the two runs part: compare the
 # first-sampled-pass column of the two dynamic-sampling arms in 6.3. Once passes turn up, what
 # the bonus changes depends on the group. In a group of G - 1 *identical* near misses and one
 # pass there are only two values, and standardization gives the pass the same advantage
@@ -353,12 +356,13 @@ for key, value in mine.items():
 #
 # **The budget.** What the recipe does carry is a budget with room to learn: against the
 # `cpu-shaped` run, twice the learning rate, a tighter cap on new tokens (room for 32
-# characters, about 8 tokens, and cheap first steps), and half as many steps again (the
+# characters, a few tokens' worth, and cheap first steps), and half as many steps again (the
 # `cpu` preset's values are in `course_utils/config.py`). Those three changes were made
 # together, on one seed, and have not been ablated one at a time, so which of them matters is
 # not known. The
 # ablation's "first sampled pass" column shows why the steps matter: no run sampled a single
-# passing completion in its first ten steps, and GRPO can only reinforce what it has sampled.
+# passing completion before step {{fig:ablation.earliest_first_pass}}, and GRPO can only
+# reinforce what it has sampled.
 # The same settings make the run fragile: in one run with a
 # different set of training prompts the policy found the cap itself, stopped emitting the
 # end-of-sequence token and filled the 24 tokens with noise of about the right length, which the
@@ -383,9 +387,9 @@ for key, value in mine.items():
 # course's previous recipe, run for the same number of steps. The arms share seeds, so they
 # share prompts, targets and, until they part, samples: each seed's *difference* is what
 # carries the evidence, and the lines under the table compare the arms seed by seed
-# (`course_utils.stats.paired`). One more caveat: seeds 0, 1 and 2 are also the seeds the
-# recipe's settings were chosen on, so the table describes these seeds; it does not test the
-# recipe on seeds that had no say in it. Reproduce with
+# (`course_utils.stats.paired`). One more caveat: the recipe's settings were chosen on seed 0's
+# runs and probed on seeds 1 and 2 (the probes below), so the table describes these seeds; it
+# does not test the recipe on seeds that had no say in it. Reproduce with
 # `python -m course_utils.ablation --seeds 0 1 2 --out notebooks/results/ablation` (each run
 # about as long as the main job; finished runs are reused, so an interrupted command resumes).
 #
@@ -407,15 +411,16 @@ for key, value in mine.items():
 #   That spread is the honest size of what 15 minutes on a CPU buy.
 # - **Dynamic sampling, as run here, changed no seed's held-out pass rate.** With it, every
 #   seed ended at exactly the pass rate it reached without it, though not always with the same
-#   policy (the distinct-completions column differs on some seeds). Until some group scores
+#   policy (the distinct-completions column differs: on at least one seed the two policies
+#   write different sets of completions). Until some group scores
 #   its G completions alike, the two runs are the same run (on one seed that never happened,
 #   and the runs are identical to the last step); after that, the extra groups it drew (the
 #   groups-sampled column) did not move the pass rate. The recipe leaves it out because it
 #   showed no gain for its cost, not because three seeds of a capped version show it useless.
 # - **The sharp reward changed two seeds' results, both for the worse.** Added on top of
 #   dynamic sampling, it did no better than dynamic sampling alone on any seed and worse on
-#   two; three seeds cannot call that a difference (the interval under the table), and
-#   nothing in it argues for the bonus.
+#   two; three seeds cannot call that a difference (its comparison with the dynamic-sampling
+#   arm under the table), and nothing in it argues for the bonus.
 # - **A two-digit target is met only by accident.** Writing a number whose digits add up to the
 #   target is a skill none of these runs found: every pass of a two-digit target, where there
 #   is any, writes the same fixed number, whose digits happen to add up to one of the targets,
