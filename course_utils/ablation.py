@@ -172,6 +172,53 @@ def probes(folder: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def template_probes(folder: Path) -> str:
+    """A markdown table of the tuning runs aimed at the template (one run per sub-folder, each
+    the cpu preset with the changes its config.json records): held-out greedy pass rates split
+    by the number of digits the target needs, and what the policy writes, from stored files."""
+    preset = load_config("cpu").to_dict()
+    ignore = {"seed", "out_dir", "max_steps", "epochs"}
+    lines = ["| change to the cpu preset | seed | steps | held-out greedy pass (both) | one-digit "
+             "targets | two-digit targets | length pass | digit-sum pass | distinct completions "
+             "(of the held-out prompts) | most frequent completion |", "|" + "---|" * 10]
+    for run in sorted(p for p in Path(folder).iterdir() if (p / "summary.json").exists()):
+        config = json.loads((run / "config.json").read_text())
+        summary = json.loads((run / "summary.json").read_text())
+        after = summary["after"]["greedy"]
+        change = ", ".join(f"{k} {config[k]}" for k in config
+                           if k not in ignore and config[k] != preset.get(k))
+        top = top_completion(after["samples"]).strip().replace("|", "/")
+        lines.append(f"| {change} | {config['seed']} | {summary['steps']} | {after['pass_both']:.1%} | "
+                     f"{after['pass_both_one_digit']:.1%} | {after['pass_both_two_digit']:.1%} | "
+                     f"{after['pass_length']:.1%} | {after['pass_digits']:.1%} | "
+                     f"{after['distinct_completions']} of {len(after['samples'])} | `{top}` |")
+    return "\n".join(lines) + "\n"
+
+
+def template_probe_logs(folder: Path) -> str:
+    """What the template probes' training logs say about the two-digit targets: how many
+    completions were sampled for them and how many passed, their share of the samples early and
+    late, and the entropy and adaptive entropy weight late in the run (a markdown list)."""
+    lines = []
+    for run in sorted(p for p in Path(folder).iterdir() if (p / "metrics.jsonl").exists()):
+        config = json.loads((run / "config.json").read_text())
+        steps = records(run)
+        quarter = max(1, len(steps) // 4)
+        per_step = config["prompts_per_step"] * config["group_size"]
+
+        def share(rows: list[dict]) -> float:
+            return sum(r["samples_two_digit"] for r in rows) / (len(rows) * per_step)
+        lines.append(
+            f"- `{run.name}`: {sum(r['samples_two_digit'] for r in steps)} sampled completions "
+            f"for two-digit targets, {sum(r['passes_two_digit'] for r in steps)} of them passing; "
+            f"the two-digit targets' share of the samples {share(steps[:quarter]):.0%} in the "
+            f"first quarter of the run and {share(steps[-quarter:]):.0%} in the last; entropy in "
+            f"the last quarter {tail_mean(steps, 'entropy', quarter):.2f} nats per token "
+            f"(entropy_target {config['entropy_target']}), adaptive entropy weight at most "
+            f"{max(r['entropy_weight'] for r in steps):.3f} (cap {config['entropy_weight_max']})")
+    return "\n".join(lines) + "\n"
+
+
 def ablation(seeds: list[int], out: Path, arms: list[str] | None = None,
              train_missing: bool = True) -> dict:
     """Train (or reuse) every arm for every seed, then write the report; ``arms`` restricts

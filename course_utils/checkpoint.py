@@ -10,6 +10,7 @@ a checkpoint never runs code from the file.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -31,6 +32,44 @@ RESUMABLE_CHANGES = {"out_dir", "max_steps", "epochs", "eval_every", "save_every
 
 class CheckpointError(RuntimeError):
     """A checkpoint cannot be used for this run; the message says why."""
+
+
+# What an OSError on the run directory means for the learner, by errno.
+FILESYSTEM_CAUSES = {
+    errno.ENOSPC: "no space left on the device: free some space (old runs, checkpoints), then "
+                  "continue with --resume",
+    errno.EDQUOT: "the disk quota is used up: free some space, then continue with --resume",
+    errno.EACCES: "permission denied: choose an out_dir you can write to",
+    errno.EPERM: "the operation is not permitted there (a protected or immutable folder): choose "
+                 "another out_dir",
+    errno.EROFS: "the file system is read-only: choose an out_dir on a writable disk",
+    errno.ENOTDIR: "a part of the path is a file, not a folder: choose another out_dir",
+    errno.EEXIST: "it exists and is not a folder: choose another out_dir",
+    errno.EISDIR: "a folder is in the way of a file the run writes: move it, or choose another "
+                  "out_dir",
+    errno.ENAMETOOLONG: "a name in the path is too long for the file system: choose a shorter "
+                        "out_dir",
+    errno.ENOENT: "a folder on the path does not exist and cannot be created there: choose "
+                  "another out_dir",
+}
+
+
+def filesystem_error(err: OSError, run_dir: Path) -> "CheckpointError | None":
+    """A one-line CheckpointError for a file-system failure on the run directory (its path and
+    its cause), or None for an OSError of another kind, which is left to propagate."""
+    cause = FILESYSTEM_CAUSES.get(err.errno)
+    if cause is None:
+        return None
+    run_dir = Path(run_dir).absolute()
+    if err.filename is not None:   # only the run directory, a file in it or a folder above it
+        target = Path(os.fsdecode(err.filename)).absolute()
+        if not (target == run_dir or run_dir in target.parents or target in run_dir.parents):
+            return None
+    elif err.errno not in (errno.ENOSPC, errno.EDQUOT):
+        return None
+    path = err.filename or run_dir
+    return CheckpointError(f"cannot write the run in {run_dir} ({path}: {err.strerror or err}); "
+                           f"{cause}")
 
 
 class RunLock:
@@ -76,13 +115,18 @@ def _lock_file(f) -> None:
 
 
 def write_json(path: Path, obj) -> None:
-    """Write a JSON file atomically: a uniquely named temporary file in the same directory,
+    """Write a JSON file atomically (see ``write_text``)."""
+    write_text(path, json.dumps(obj, indent=2))
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write a text file atomically: a uniquely named temporary file in the same directory,
     flushed to disk, then renamed over the target, so a reader (or a crash) never sees half."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}-", suffix=".tmp")
     try:
         with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(obj, indent=2))
+            f.write(text)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -94,7 +138,23 @@ def write_json(path: Path, obj) -> None:
 MANIFEST = "manifest.json"
 CURRENT, PREVIOUS = "checkpoint", "checkpoint-previous"
 TMP_PREFIX = ".checkpoint-tmp-"
-LEGACY = ".checkpoint-old"   # the moved-aside checkpoint of runs written before manifests
+LEGACY = ".checkpoint-old"   # an older layout's moved-aside checkpoint: verified like the others
+
+
+def read_json(path: Path, fix: str):
+    """A run file's JSON, or a one-line CheckpointError naming the file and ``fix`` when it is
+    unreadable, empty, truncated or not a JSON object (a crash, a full disk, a bad copy)."""
+    path = Path(path)
+    try:
+        value = json.loads(path.read_text())
+    except OSError as err:
+        raise CheckpointError(f"{path} cannot be read ({err.strerror or err}): {fix}") from None
+    except (ValueError, UnicodeDecodeError):
+        raise CheckpointError(f"{path} is damaged (not valid JSON, or empty): {fix}") from None
+    if not isinstance(value, dict):
+        raise CheckpointError(f"{path} is damaged (it holds a {type(value).__name__}, not a JSON "
+                              f"object): {fix}")
+    return value
 
 
 def damaged_name(name: str) -> str:
@@ -145,10 +205,24 @@ def save(run_dir: Path, model, tokenizer, state: dict) -> Path:
     run_dir = Path(run_dir)
     remove_leftovers(run_dir)
     tmp = Path(tempfile.mkdtemp(dir=run_dir, prefix=TMP_PREFIX))
-    model.save_pretrained(tmp)
-    tokenizer.save_pretrained(tmp)
-    torch.save(state, tmp / STATE_FILE)
-    _write_manifest(tmp, state.get("step", 0))
+    try:
+        model.save_pretrained(tmp)
+        tokenizer.save_pretrained(tmp)
+        torch.save(state, tmp / STATE_FILE)
+        _write_manifest(tmp, state.get("step", 0))
+    except Exception as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        # safetensors and torch.save report a full disk in their own words ("inline_container",
+        # "I/O error") that never mention space: say what it was, once the half-written copy
+        # is gone and the previous checkpoint is known to be whole
+        if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT) or \
+                _free_bytes(run_dir) < LOW_SPACE_BYTES:
+            raise CheckpointError(
+                f"writing the checkpoint in {run_dir} failed: no space left on the device "
+                f"({_free_bytes(run_dir) // 2**20} MiB free; {type(err).__name__}: "
+                f"{str(err).strip().splitlines()[0][:100] if str(err).strip() else ''}). The last "
+                f"checkpoint is whole: free some space, then continue with --resume") from None
+        raise
     final, previous = run_dir / CURRENT, run_dir / PREVIOUS
     if final.exists():
         # a crash between these renames leaves checkpoint-previous (or the current checkpoint)
@@ -158,6 +232,17 @@ def save(run_dir: Path, model, tokenizer, state: dict) -> Path:
     os.replace(tmp, final)
     shutil.rmtree(run_dir / LEGACY, ignore_errors=True)
     return final
+
+
+# Below this much free space a failed checkpoint write is reported as a full disk.
+LOW_SPACE_BYTES = 64 * 2**20
+
+
+def _free_bytes(path: Path) -> int:
+    try:
+        return shutil.disk_usage(path).free
+    except OSError:
+        return 2**62   # unknown: do not claim the disk is full
 
 
 def remove_leftovers(run_dir: Path) -> None:
@@ -181,10 +266,9 @@ def find(run_dir: Path) -> Path | None:
         path = run_dir / name
         if not path.is_dir():
             continue
-        if not (path / MANIFEST).exists() and (path / STATE_FILE).exists():
-            problem = None   # written before checkpoints had manifests: nothing to check against
-        else:
-            problem = verify(path)
+        # no manifest means the write never finished (it is written last), or the folder was
+        # copied in part: damaged, never trusted unchecked
+        problem = verify(path)
         if problem is None:
             if problems:
                 print(f"[course_utils] {'; '.join(problems)}: resuming from {path} instead")
@@ -271,11 +355,11 @@ class MetricsLog:
         reading on, or resuming over it, would silently drop every later step."""
         if not self.path.exists():
             return []
-        lines = self.path.read_text().splitlines()
+        lines = self.path.read_text(errors="replace").splitlines()
         records = []
         for number, line in enumerate(lines, 1):
             try:
-                records.append(json.loads(line))
+                record = json.loads(line)
             except json.JSONDecodeError:
                 if number == len(lines):
                     break  # the torn last line of a crash: everything before it is intact
@@ -283,4 +367,20 @@ class MetricsLog:
                     f"{self.path}, line {number} of {len(lines)}, is not a JSON record, and later "
                     f"lines follow it: the log was damaged. Repair or delete that line, or start "
                     f"a new run in another out_dir.") from None
+            step = record.get("step") if isinstance(record, dict) else None
+            if not isinstance(step, int) or isinstance(step, bool):
+                # JSON, but not a record (``null``, a list, no step): not a crash's torn line
+                raise CheckpointError(
+                    f"{self.path}, line {number} of {len(lines)}, is not a step record (a JSON "
+                    f"object with an integer 'step'): the log was damaged. Repair or delete that "
+                    f"line, or start a new run in another out_dir.")
+            expected = records[-1]["step"] + 1 if records else 1
+            if step != expected:
+                # a duplicated or missing step would plot and average as if it were real
+                raise CheckpointError(
+                    f"{self.path}, line {number}, holds step {step} where step {expected} should "
+                    f"follow: the log has {'a repeated' if step < expected else 'a missing'} step "
+                    f"and was damaged or mixed with another run's. Repair it, or start a new run "
+                    f"in another out_dir.")
+            records.append(record)
         return records

@@ -14,6 +14,7 @@ import importlib.util
 import math
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 # The one switch that shrinks every notebook and the main job for CI. Read it only through
@@ -52,7 +53,8 @@ class Config:
     reward: str = _f("binary", "'binary': 1 only if both constraints pass (the recipe); 'shaped': "
                                "partial credit relative to the target; 'sharp': 2/3 of 'shaped' plus 1/3 of "
                                "'binary', so a pass pays clearly more than a near miss; 'graded': the digit part in "
-                               "whole units of the digit sum and 0 without digits (rewards.py)",
+                               "whole units of the digit sum and 0 without digits, the length part half "
+                               "in whole characters (rewards.py)",
                         ("binary", "shaped", "sharp", "graded"))
     # --- how much data -----------------------------------------------------------------------
     train_prompts: int = _f(1024, "number of distinct training prompts")
@@ -212,6 +214,13 @@ class Config:
             ok = isinstance(value, (int, float)) and not isinstance(value, bool) and \
                 math.isfinite(value) and low <= value <= high
             need(ok, name, f"must be a finite number {meaning}")
+        need(self.dataset is None or self.prompt_source == "openwebtext", "dataset",
+             "it is read only with prompt_source='openwebtext'; drop it, or add --prompt_source "
+             "openwebtext")
+        need(len(str(self.out_dir)) < 4096 and all(len(part.encode()) <= 255 for part in
+                                                   Path(str(self.out_dir)).parts), "out_dir",
+             "a folder name in it is longer than the file system allows (255 bytes); choose a "
+             "shorter out_dir")
         need(self.prompts_per_step % self.grad_accum == 0, "grad_accum",
              f"must divide prompts_per_step={self.prompts_per_step} so every micro-batch holds "
              "whole groups")

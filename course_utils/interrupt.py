@@ -7,7 +7,8 @@ in flight is lost, and the user is left to guess what state the run is in. Here 
 only sets a flag that the training loop reads between steps. Outside the loop (the evaluations
 before and after training) there is no step to finish and the checkpoint on disk is already
 whole, so the first signal stops at once. A second signal always stops at once: the last
-checkpoint stands and the step in flight is redone on resume.
+checkpoint stands (the message says which step it holds, or that none was written yet) and the
+step in flight is redone on resume.
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ class StopRequests:
         self.how_to_resume = how_to_resume
         self.signum: int | None = None   # the first signal received, if any
         self.deferring = False
+        # the step of the newest checkpoint on disk, kept up to date by the training loop; None
+        # while the run has none (set-up, the first evaluation, the steps before the first save)
+        self.checkpoint_step: int | None = None
         self._previous = {}
 
     def __enter__(self) -> "StopRequests":
@@ -57,9 +61,11 @@ class StopRequests:
             print(f"\n[course_utils] {signal.Signals(signum).name}: stopping after this step, then "
                   f"saving a checkpoint (send it again to stop at once)", flush=True)
             return
-        raise Interrupted(f"stopped on {signal.Signals(signum).name} before the step in flight "
-                          f"finished; the last checkpoint stands. To continue, {self.how_to_resume}",
-                          signum)
+        where = (f"the checkpoint at step {self.checkpoint_step} stands" if self.checkpoint_step
+                 else "no checkpoint had been written yet, so the run will start from the beginning")
+        what = "before the step in flight finished" if self.deferring else "outside a training step"
+        raise Interrupted(f"stopped on {signal.Signals(signum).name} {what}; {where}. To continue, "
+                          f"{self.how_to_resume}", signum)
 
     def stopped(self, step: int, total: int) -> Interrupted:
         """The exception to raise once the loop has saved a checkpoint after ``step``."""

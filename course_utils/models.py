@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import importlib.util
+import json
 import os
 import re
 import shutil
@@ -88,10 +89,12 @@ def check_available(name: str) -> None:
         return
     fix = (f"use the embedded model ('{EMBEDDED}', offline), a directory written by "
            "save_pretrained, or a hub id such as Qwen/Qwen2.5-0.5B-Instruct")
+    if any(len(part.encode()) > 255 for part in Path(name).parts):
+        raise ModelNotAvailable(f"model {name[:40]!r}...: a name in it is longer than a file "
+                                f"system allows (255 bytes); {fix}")
     path = Path(name).expanduser()
     if path.is_dir():
-        if not (path / "config.json").exists():
-            raise ModelNotAvailable(f"model {name!r}: the directory has no config.json; {fix}")
+        check_model_directory(path, name, fix)
         return
     if name.startswith((".", "/", "~")) or "\\" in name:
         raise ModelNotAvailable(f"model {name!r}: no such directory; {fix}")
@@ -106,6 +109,36 @@ def check_available(name: str) -> None:
         reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
         raise ModelNotAvailable(f"model {name!r} cannot be loaded here ({reason}); if this machine "
                                 f"is offline, {fix}") from None
+
+
+WEIGHT_PATTERNS = ("*.safetensors", "pytorch_model*.bin", "*.safetensors.index.json",
+                   "pytorch_model.bin.index.json")
+TOKENIZER_FILES = ("tokenizer.json", "tokenizer.model", "vocab.json", "tokenizer_config.json")
+
+
+def check_model_directory(path: Path, name: str, fix: str) -> None:
+    """A local model directory must hold what ``from_pretrained`` reads: a config.json that
+    names its model_type, tokenizer files and weights. Checked here, before the run's lock and
+    files, so a wrong folder (a run folder, a config alone, an empty ``{}``) is one line."""
+    if (path / "checkpoint" / "config.json").is_file() and (path / "metrics.jsonl").exists():
+        raise ModelNotAvailable(f"model {name!r} is a training run's folder, not a model: use the "
+                                f"model it saved, {path / 'checkpoint'}")
+    if not (path / "config.json").is_file():
+        raise ModelNotAvailable(f"model {name!r}: the directory has no config.json; {fix}")
+    try:
+        config = json.loads((path / "config.json").read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        raise ModelNotAvailable(f"model {name!r}: its config.json is not readable JSON; {fix}") from None
+    if not isinstance(config, dict) or not config.get("model_type"):
+        raise ModelNotAvailable(f"model {name!r}: its config.json names no model_type, so it is "
+                                f"not a transformers model configuration; {fix}")
+    if not any(any(path.glob(p)) for p in WEIGHT_PATTERNS):
+        raise ModelNotAvailable(f"model {name!r}: the directory has no weights (*.safetensors or "
+                                f"pytorch_model*.bin); {fix}")
+    if not any((path / f).is_file() for f in TOKENIZER_FILES):
+        raise ModelNotAvailable(f"model {name!r}: the directory has no tokenizer files "
+                                f"({', '.join(TOKENIZER_FILES)}); save the tokenizer with "
+                                f"save_pretrained into it too, or {fix}")
 
 
 def architecture(name: str):

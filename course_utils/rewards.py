@@ -63,6 +63,15 @@ def _content_text(content: Any) -> str:
                     f"{type(content).__name__}: {content!r:.80}")
 
 
+def _message_content(message: dict) -> Any:
+    """A chat message's ``content``; a dict without that key (``{"text": ...}``, a typo) is not a
+    message, and scoring it as an empty reply would hide the mistake behind a reward of 0."""
+    if "content" not in message:
+        raise TypeError(f"a chat message must have a 'content' key (as in {{'role': 'assistant', "
+                        f"'content': ...}}), got keys {sorted(map(str, message))}")
+    return message["content"]
+
+
 def completion_text(completion: Any) -> str:
     """The text a rule is applied to: str as given, or the last message of a chat completion.
 
@@ -73,9 +82,9 @@ def completion_text(completion: Any) -> str:
     if isinstance(completion, str):
         text = completion
     elif isinstance(completion, (list, tuple)) and completion and isinstance(completion[-1], dict):
-        text = _content_text(completion[-1].get("content"))
+        text = _content_text(_message_content(completion[-1]))
     elif isinstance(completion, dict):
-        text = _content_text(completion.get("content"))
+        text = _content_text(_message_content(completion))
     else:
         raise TypeError(f"a completion must be a str or a list of chat messages, got "
                         f"{type(completion).__name__}: {completion!r:.80}")
@@ -131,9 +140,14 @@ def _targets(name: str, kwargs: dict, n: int) -> list[int]:
         raise KeyError(f"reward needs the '{name}' column (one value per completion); got only "
                        f"{sorted(kwargs)}")
     values = kwargs[name]
+    if getattr(values, "ndim", None) == 0 and hasattr(values, "item"):
+        values = values.item()   # a 0-d numpy array or torch tensor is one number
+    elif hasattr(values, "tolist") and not isinstance(values, (str, bytes)):
+        values = values.tolist()   # a numpy array or tensor column: its Python numbers
     if isinstance(values, numbers.Number):  # convenience: one target for every completion
         values = [values] * n
-    if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+    if not isinstance(values, (list, tuple)):
+        # a dict would be read as its keys, a generator has no length, None is not a column
         raise TypeError(f"'{name}' must be a list with one target per completion, got "
                         f"{type(values).__name__}")
     if len(values) != n:
@@ -153,6 +167,11 @@ def _completions(completions: Any) -> Sequence[Any]:
     if isinstance(completions, (str, bytes)):
         raise TypeError("completions must be a list of completions, got a single string; wrap "
                         "it in a list")
+    if not isinstance(completions, (list, tuple)):
+        # a bare message dict would be scored key by key; a generator has no length
+        raise TypeError(f"completions must be a list of completions (one str or chat message "
+                        f"list each), got {type(completions).__name__}; wrap a single "
+                        f"completion in a list")
     return completions
 
 
@@ -221,8 +240,14 @@ def sharp_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -
 def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
     """Partial credit in [0, 1] whose digit part counts whole units of the digit sum:
 
-    graded = 1/2 * length credit + 1/2 * digit credit, where the length credit is
-    ``shaped_score``'s and
+    graded = 1/2 * length credit + 1/2 * digit credit, where, with m = |n_chars - target_chars|,
+
+    length credit = 1/2 / (1 + m / target_chars) + 1/2 / (1 + m)
+
+    (``shaped_score``'s relative credit, which still ranks very long replies, averaged with one
+    in whole characters, so the last few characters are worth as much as the last few units of
+    the digit sum; with the relative credit alone a reply one character short keeps 98% of its
+    length credit, and a policy learns the digits and stops a few characters off), and
 
     digit credit = 0                          if the digits add up to 0 (none, or only zeros)
                                               and S > 0,
@@ -236,7 +261,10 @@ def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) ->
     earns no digit credit, so it is never a safe harbour. The score is 1 exactly when
     ``binary_reward`` is 1.
     """
-    length_credit = 1.0 / (1.0 + abs(result.n_chars - target_chars) / max(target_chars, 1))
+    miss = abs(result.n_chars - target_chars)
+    # half relative (a reply 60 characters long still beats one 90 long), half in whole
+    # characters (one character short loses a quarter of the length credit, not 1.5%)
+    length_credit = 0.5 / (1.0 + miss / max(target_chars, 1)) + 0.5 / (1.0 + miss)
     counts = result.digit_sum > 0 or target_digit_sum == 0
     digit_credit = 1.0 / (1.0 + abs(result.digit_sum - target_digit_sum)) if counts else 0.0
     return 0.5 * length_credit + 0.5 * digit_credit

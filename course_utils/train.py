@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import json
 import math
 import os
+import re
 import shlex
 import sys
 import time
@@ -602,9 +604,15 @@ def train(cfg: Config, resume: bool = False, progress: bool = True, overwrite: b
     # The lock comes first: nothing in run_dir is read or written without it. Under accelerate
     # every process runs this function on the same run_dir; the first one (rank 0) holds it.
     first_process = os.environ.get("RANK", "0") == "0"
-    with checkpoint.RunLock(run_dir) if first_process else contextlib.nullcontext():
-        with interrupt.StopRequests(how_to_resume) as stop:
-            return _train_in(run_dir, cfg, resume, overwrite, progress, started, stop)
+    try:
+        with checkpoint.RunLock(run_dir) if first_process else contextlib.nullcontext():
+            with interrupt.StopRequests(how_to_resume) as stop:
+                return _train_in(run_dir, cfg, resume, overwrite, progress, started, stop)
+    except OSError as err:   # out_dir a file, read-only, full, ...: the path and the cause
+        readable = checkpoint.filesystem_error(err, run_dir)
+        if readable is None:
+            raise
+        raise readable from None
 
 
 def device_memory(cfg: Config) -> tuple[int | None, str]:
@@ -634,19 +642,22 @@ def _open_run(run_dir: Path, cfg: Config, resume: bool,
                 f"{run_dir} already holds a run ({', '.join(contents)}): continue it with --resume "
                 f"(resume=True), replace it with --overwrite (overwrite=True), or choose another "
                 f"out_dir")
-        checkpoint.clear(run_dir)
+        return None, None   # cleared by _train_in once the model and prompts are ready
+    if not contents:
+        print(f"[course_utils] {run_dir} holds no run to resume: starting a new one there")
         return None, None
+    fix = "restore the file, or start over with --overwrite (overwrite=True)"
     log = checkpoint.MetricsLog(run_dir / "metrics.jsonl")
     logged = log.read()
     last_logged = logged[-1]["step"] if logged else 0
     summary_path = run_dir / "summary.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    summary = checkpoint.read_json(summary_path, fix) if summary_path.exists() else {}
     found = checkpoint.find(run_dir)
     if found is None:
         # only a run that stopped before its first checkpoint may start again from step 0 (its
         # log may hold that step: the record is appended before the checkpoint is written)
         saved_path = run_dir / "config.json"
-        saved = json.loads(saved_path.read_text()) if saved_path.exists() else None
+        saved = checkpoint.read_json(saved_path, fix) if saved_path.exists() else None
         different = checkpoint.config_differences(saved, cfg.to_dict()) if saved else ""
         first_save = (saved or {}).get("save_every", cfg.save_every)
         why = ("its config.json is another run's (" + different + ")" if different else
@@ -657,9 +668,7 @@ def _open_run(run_dir: Path, cfg: Config, resume: bool,
             raise checkpoint.CheckpointError(
                 f"{run_dir} has no checkpoint to resume from, and starting it again would overwrite "
                 f"it: {why}. Start over with --overwrite (overwrite=True), or use another out_dir")
-        if contents:
-            print(f"[course_utils] {run_dir} stopped before its first checkpoint: starting it again")
-        checkpoint.clear(run_dir)
+        print(f"[course_utils] {run_dir} stopped before its first checkpoint: starting it again")
         return None, None
     state = checkpoint.load_state(found, cfg.to_dict())
     step = state["step"]
@@ -692,13 +701,20 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
             found = checkpoint.find(run_dir)
             state = checkpoint.load_state(found, cfg.to_dict()) if found else None
     summary_path = run_dir / "summary.json"
-    summary = json.loads(summary_path.read_text()) if (state and summary_path.exists()) else {}
+    summary = checkpoint.read_json(summary_path, "restore the file, or start over with --overwrite "
+                                   "(overwrite=True)") if (state and summary_path.exists()) else {}
     if state and state["step"] >= cfg.total_steps and "after" in summary:
-        # a re-run cell or command on a finished run: nothing to train, nothing to rewrite
-        print(f"[course_utils] {run_dir} is finished ({summary.get('steps', state['step'])} steps): "
-              f"nothing to do")
+        # a re-run cell or command on a finished run: nothing to train. The report and the
+        # curves are derived from summary.json and metrics.jsonl, so a run killed between
+        # writing those and them (or whose copies were deleted) gets them back here.
+        missing = [n for n in ("report.md", "curves.png") if not (run_dir / n).exists()]
+        if missing and os.environ.get("RANK", "0") == "0":
+            _write_report(run_dir, summary, cfg)
+            print(f"[course_utils] {run_dir} is finished; rewrote {' and '.join(missing)}")
+        else:
+            print(f"[course_utils] {run_dir} is finished ({summary.get('steps', state['step'])} "
+                  f"steps): nothing to do")
         return summary
-    checkpoint.write_json(run_dir / "config.json", cfg.to_dict())
 
     policy = setup(cfg, init_from=found)
     # With several processes (accelerate launch) all of them train; only the main one evaluates
@@ -724,12 +740,21 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
         if policy.entropy_control:
             policy.entropy_control.load_state_dict(state["entropy_control"])
         start_step = state["step"]
+        stop.checkpoint_step = start_step
         if main:
             log.truncate_after(start_step)
             print(f"[course_utils] resumed from {found} at step {start_step}")
 
     train_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=False)
     eval_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=True)
+    # Only now, with the model and the prompts ready, is anything in run_dir replaced: a run
+    # refused above (a dataset offline, a model that does not load) leaves the directory as it
+    # was, so the corrected command runs without --overwrite, and --overwrite never deletes a
+    # run for a command that then fails.
+    if main and state is None:
+        checkpoint.clear(run_dir)
+    if main:
+        checkpoint.write_json(run_dir / "config.json", cfg.to_dict())
     if cfg.target_sampling == "prioritized":
         policy.priority = curriculum.TargetPriority(train_prompts)
         if state:
@@ -765,9 +790,11 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
         saved = (step + 1) % cfg.save_every == 0 or step + 1 == total
         if saved:
             _save(run_dir, policy, step + 1)
+            stop.checkpoint_step = step + 1
         if _agree(policy, stop.requested):   # every process stops after the same step
             if not saved:
                 _save(run_dir, policy, step + 1)
+                stop.checkpoint_step = step + 1
             bar.close()
             raise stop.stopped(step + 1, total)
         stop.deferring = False
@@ -786,13 +813,19 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     summary["seconds"] = summary.get("seconds", 0.0) + time.perf_counter() - started
     summary["resumed"] = bool(state)
     checkpoint.write_json(summary_path, summary)
+    print(_write_report(run_dir, summary, cfg))
+    return summary
+
+
+def _write_report(run_dir: Path, summary: dict, cfg: Config) -> str:
+    """The files derived from summary.json and metrics.jsonl: curves.png and report.md (the
+    report last and atomically, so its presence means both were written)."""
     from .plots import plot_metrics
 
-    plot_metrics(log.read(), run_dir / "curves.png")
+    plot_metrics(checkpoint.MetricsLog(run_dir / "metrics.jsonl").read(), run_dir / "curves.png")
     report = before_after_report(summary, cfg)
-    (run_dir / "report.md").write_text(report)
-    print(report)
-    return summary
+    checkpoint.write_text(run_dir / "report.md", report)
+    return report
 
 
 def _save(run_dir: Path, policy: Policy, step: int) -> None:
@@ -865,17 +898,54 @@ def _parse(raw: str, annotation: str, name: str):
             if raw.lower() in {"0", "false", "no"}:
                 return False
             raise ValueError
+        # int() and float() also read other scripts' digits ("٣" is 3) and "1_000": a number on
+        # the command line is written in ASCII, as everywhere else in a run's files
         if annotation.startswith("int"):
+            if not re.fullmatch(r"[+-]?[0-9]+", raw.strip()):
+                raise ValueError
             return int(raw)
         if annotation.startswith("float"):
+            if not raw.strip().isascii() or "_" in raw:
+                raise ValueError
             return float(raw)
     except ValueError:
         raise ConfigError(f"--{name} {raw!r} is not a valid {annotation.split(' ')[0]}") from None
     return raw
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse, with its errors as the one-line ``error:`` every config error gets (not a
+    33-line usage dump), and a close match suggested for a misspelt option."""
+
+    def error(self, message: str):
+        unknown = re.search(r"unrecognized arguments: (\S+)", message)
+        if unknown:
+            options = [o for a in self._actions for o in a.option_strings]
+            guess = unknown.group(1).split("=")[0].replace("-", "_").lstrip("_")
+            close = difflib.get_close_matches("--" + guess, options, n=1)
+            message += f" (did you mean {close[0]}?)" if close else ""
+        raise SystemExit(f"error: {message}; see python -m course_utils.train --help")
+
+
+def _join_negative_values(argv: list[str]) -> list[str]:
+    """``--lr -1e-3`` as ``--lr=-1e-3``: argparse reads a value that starts with '-' and is not
+    a plain decimal as an option and says "expected one argument", hiding the real problem (a
+    negative learning rate), which the config check then names."""
+    fields = {f"--{name}" for name in Config.__dataclass_fields__}
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in fields and i + 1 < len(argv) and re.fullmatch(r"-[0-9.][0-9.eE+-]*|-inf|-nan",
+                                                                     argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="python -m course_utils.train",
         description="GRPO on the rule-following task: evaluate, train, evaluate again.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -891,8 +961,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def resume_command(args: argparse.Namespace) -> str:
+    """The command that continues this run, rebuilt from the parsed arguments (so an abbreviated
+    ``--overwr`` or ``--res`` never survives into it): the preset, every option given, and
+    --resume."""
+    again = ["python", "-m", "course_utils.train", "--preset", args.preset]
+    for name in Config.__dataclass_fields__:
+        value = getattr(args, name)
+        if value is not None:
+            again += [f"--{name}={value}"] if value.startswith("-") else [f"--{name}", value]
+    if args.no_progress:
+        again.append("--no-progress")
+    return shlex.join(again + ["--resume"])
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(_join_negative_values(argv))
     try:  # a value that is not of its field's type is a config error like any other: one line
         overrides = {name: _parse(getattr(args, name), str(f.type), name)
                      for name, f in Config.__dataclass_fields__.items() if getattr(args, name) is not None}
@@ -901,10 +986,11 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"error: {err}") from None
     print(f"[course_utils] preset {args.preset}: {cfg.total_steps} steps of {cfg.prompts_per_step} "
           f"prompts x {cfg.group_size} completions, model {cfg.model}, writing to {cfg.out_dir}")
-    # the command that continues this run: these arguments, with --resume and without --overwrite
-    argv = list(sys.argv[1:] if argv is None else argv)
-    again = ["python", "-m", "course_utils.train"] + [a for a in argv if a not in ("--resume", "--overwrite")]
-    how_to_resume = "run: " + shlex.join(again + ["--resume"])
+    how_to_resume = "run: " + resume_command(args)
+    if args.no_progress:   # transformers' own bars too ("Loading weights", "Writing model shards")
+        from transformers.utils import logging as transformers_logging
+
+        transformers_logging.disable_progress_bar()
     try:
         train(cfg, resume=args.resume, progress=not args.no_progress, overwrite=args.overwrite,
               how_to_resume=how_to_resume)

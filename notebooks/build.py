@@ -136,6 +136,12 @@ def probes_markdown() -> str:
     return ablation.probes(RESULTS / "probes")
 
 
+def template_probes_markdown() -> str:
+    """Tuning runs of the levers aimed at the template (``notebooks/results/template-probes``)."""
+    from course_utils import ablation
+    return ablation.template_probes(RESULTS / "template-probes")
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -193,6 +199,11 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "ABLATION_RESULTS", ablation_markdown())
     if "{{PROBES}}" in text:
         text = fill_markdown(text, "PROBES", probes_markdown())
+    if "{{TEMPLATE_PROBES}}" in text:
+        from course_utils import ablation
+        text = fill_markdown(text, "TEMPLATE_PROBES", template_probes_markdown())
+        text = fill_markdown(text, "TEMPLATE_PROBE_LOGS",
+                             ablation.template_probe_logs(RESULTS / "template-probes"))
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))

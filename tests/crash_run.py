@@ -70,6 +70,10 @@ def arm(point: str) -> None:
                 die()
             return out
         train.checkpoint.save = save
+    elif point == "between_summary_and_report":   # summary.json written, report.md not yet
+        def write_report(*args, **kwargs):
+            die()
+        train._write_report = write_report
     elif point in SIGNAL_POINTS:                 # a signal (or two) in the middle of step 3
         how, times = point.rsplit("_", 1)
         sig = signal.SIGINT if how == "sigint" else signal.SIGTERM
@@ -90,7 +94,8 @@ def arm(point: str) -> None:
 # The moments a clock cannot be trusted to hit: a few lines of code wide. The wide windows
 # (before the first checkpoint, a step logged but not yet saved, just after a save) are hit by
 # tests/test_crash.py's 20-kill sweep; the points for them stay here to reproduce one by hand.
-KILL_POINTS = ("torn_metrics_line", "during_checkpoint_write", "between_renames")
+KILL_POINTS = ("torn_metrics_line", "during_checkpoint_write", "between_renames",
+               "between_summary_and_report")
 WIDE_KILL_POINTS = ("before_first_checkpoint", "after_metrics_before_checkpoint", "after_checkpoint")
 SIGNAL_POINTS = ("sigint_1", "sigterm_1", "sigint_2")   # the signal, and how many times
 

@@ -54,11 +54,14 @@ def test_a_crash_between_renames_keeps_a_checkpoint_and_the_next_save_recovers(t
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint", "checkpoint-previous"]
 
 
-def test_a_checkpoint_written_before_manifests_still_resumes(tmp_path):
+def test_a_checkpoint_without_a_manifest_is_never_trusted(tmp_path):
+    # the manifest is written last, so without one the write did not finish (issue 26, 1)
     legacy = tmp_path / ".checkpoint-old"
     legacy.mkdir()
     torch.save({"step": 5}, legacy / checkpoint.STATE_FILE)
-    assert checkpoint.find(tmp_path) == legacy and _step(tmp_path) == 5
+    with pytest.raises(checkpoint.CheckpointError, match="manifest.json is missing"):
+        checkpoint.find(tmp_path)
+    assert (tmp_path / "checkpoint-old-damaged").is_dir()
 
 
 def test_metrics_log_drops_steps_after_the_checkpoint_and_a_torn_last_line(tmp_path):

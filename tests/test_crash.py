@@ -67,6 +67,9 @@ def assert_same_run(uninterrupted: Path, run: Path) -> None:
     assert _strip(ra) == _strip(rb)
     leftovers = [p.name for p in run.iterdir() if p.name.startswith(".") and p.name != ".lock"]
     assert not leftovers, leftovers
+    # every file a finished run has, the derived report and curves included (issue 26, 2)
+    missing = [n for n in checkpoint.RUN_FILES if not (run / n).exists()]
+    assert not missing, missing
 
 
 @pytest.mark.parametrize("point", SIGNAL_POINTS)

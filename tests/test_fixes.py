@@ -459,3 +459,44 @@ def test_ablation_comparisons_skip_seeds_without_the_target_and_missing_arms():
     assert "seeds 0, 2 (no such target on seed(s) 1)" in two
     del result["arms"][ablation.FULL]
     assert ablation.comparisons(result) == []      # nothing to compare against: no KeyError
+
+
+def test_template_probe_sentences_hold_for_every_stored_run():
+    """Lesson 7, 6.4's sentences on the template-lever tuning runs, checked on their files: the
+    table and the list are the files' own; at the main job's length the template is gone (most
+    held-out completions distinct, all starting with a digit) but not the length; the longer
+    run learned the length and a new template that passes no two-digit target; no sampled
+    completion of either passed a two-digit target; in the longer run the two-digit share grew,
+    the entropy ended below its target with the adaptive weight at its cap."""
+    import json
+    from pathlib import Path
+
+    from course_utils import ablation
+    folder = Path(__file__).resolve().parents[1] / "notebooks" / "results" / "template-probes"
+    runs = sorted(p for p in folder.iterdir() if (p / "summary.json").exists())
+    table = ablation.template_probes(folder).splitlines()[2:]
+    logs = ablation.template_probe_logs(folder).splitlines()
+    assert len(runs) == len(table) == len(logs) == 2
+    short, long = runs
+    for row, log, run in zip(table, logs, runs):
+        after = json.loads((run / "summary.json").read_text())["after"]["greedy"]
+        steps = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[3] == f"{after['pass_both']:.1%}" and cells[5] == f"{after['pass_both_two_digit']:.1%}"
+        assert sum(r["passes_two_digit"] for r in steps) == 0 and ", 0 of them passing" in log
+        assert after["pass_both_two_digit"] == 0.0
+        texts = [s["completion"].strip() for s in after["samples"]]
+        assert all(t[:1].isdigit() for t in texts)
+        if run == short:
+            assert after["distinct_completions"] >= len(texts) / 2
+            assert after["pass_digits"] >= after["pass_length"] + 0.3
+            assert max(r["entropy_weight"] for r in steps) == 0.0
+        else:
+            config = json.loads((run / "config.json").read_text())
+            assert after["pass_length"] >= 0.95 and after["pass_both_one_digit"] == 1.0
+            assert after["distinct_completions"] <= len(texts) / 4
+            q = len(steps) // 4
+            share = [sum(r["samples_two_digit"] for r in rows) for rows in (steps[:q], steps[-q:])]
+            assert share[1] > share[0]
+            assert max(r["entropy_weight"] for r in steps) == config["entropy_weight_max"]
+            assert max(r["entropy"] for r in steps[-q:]) < config["entropy_target"]

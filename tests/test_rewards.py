@@ -129,7 +129,8 @@ def test_graded_reward_counts_whole_units_and_pays_nothing_without_digits():
     assert graded("abcdefghij") == pytest.approx(0.5)                     # no digit: no digit credit
     assert graded("abcdefghi0") == pytest.approx(0.5)                     # only zeros: the same
     assert graded("abcdefghi0", S=0) == 1.0                               # unless the target is 0
-    assert graded("abcdefgh39x") == pytest.approx(0.5 / (1 + 1 / 10) + 0.5)
+    assert graded("abcdefgh39x") == pytest.approx(0.5 * (0.5 / (1 + 1 / 10) + 0.5 / 2) + 0.5)
+    assert graded("abcdefgh39" + "x" * 10) == pytest.approx(0.5 * (0.5 / 2 + 0.5 / 11) + 0.5)
     # the order that matters for two-digit targets: a second digit towards 12 beats any one digit
     assert graded("abcdefghi8") < graded("abcdefghi9") < graded("abcdefgh48x")
 

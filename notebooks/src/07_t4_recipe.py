@@ -474,19 +474,40 @@ for key, value in mine.items():
 # fixed sentence. That is the honest summary of reward design: the checker is the
 # specification, and a policy will find every gap in it.
 #
-# **Levers aimed at the template, not yet measured.** The diagnosis above points at three
+# **Levers aimed at the template: first tuning runs.** The diagnosis above points at three
 # causes: entropy gone before the two-digit targets were ever solved, samples spread evenly
 # over targets that are already solved, and a partial credit that pays a one-digit reply for a
 # two-digit target most of the digit credit. The library has one lever for each, tested for
-# its rule and for an exact resume, and none of them has been run on the main job yet:
-# `entropy_bonus="adaptive"` (Skywork-OR1's adaptive entropy control: a bonus whose weight
-# grows while the entropy is below `entropy_target` and shrinks above it),
-# `target_sampling="prioritized"` (target digit sums drawn with more weight the less often
-# they pass, `course_utils/curriculum.py`) and `reward="graded"` (the digit credit counted in
-# whole units of the digit sum, nothing for a reply without digits). The experiment that would
-# earn any of them a place in the recipe is the one this section has been asking for: choose
-# on tuning seeds, freeze the recipe, then report it once on fresh seeds, paired against the
-# preset, each lever also removed on its own.
+# its rule and for an exact resume: `entropy_bonus="adaptive"` (Skywork-OR1's adaptive
+# entropy control: a bonus whose weight grows while the entropy is below `entropy_target` and
+# shrinks above it), `target_sampling="prioritized"` (target digit sums drawn with more weight
+# the less often they pass, `course_utils/curriculum.py`) and `reward="graded"` (the digit
+# credit counted in whole units of the digit sum, nothing for a reply without digits, and half
+# of the length credit counted in whole characters). The table holds the runs of all three
+# together, on tuning seed 0 only (`notebooks/results/template-probes/`), the main job's length
+# and then a longer budget:
+#
+# {{TEMPLATE_PROBES}}
+#
+# Read the last two columns before the pass rates. At the main job's length the template is
+# gone: the policy continues each snippet in its own words with a digit at the front, but it
+# has not learned the exact length, so few replies pass both constraints. Given the longer
+# budget it learned the length, and with it a new template: one sentence with the digit in
+# front, which passes every one-digit target and no two-digit one. The training logs say why
+# (the list below is read from them). In neither run did a single *sampled* completion pass a two-digit
+# target, so no group ever held a two-digit pass to give an advantage to. In the longer run,
+# prioritized sampling did what it is for (the two-digit targets' share of the samples grew),
+# and the entropy fell below `entropy_target`, the adaptive weight climbed to its cap
+# (`entropy_weight_max`), and the entropy stayed below the target. What is missing is exploration that
+# finds a reply whose digits add up to a two-digit target; none of these levers, at these
+# settings, produced one. These are single-seed tuning runs, chosen from and reported on the
+# same seed: they say where to look, not that any lever works. Where to look next: larger
+# groups for the unsolved targets, a higher cap on the entropy weight, a warm start as a
+# labelled comparison (what supervision alone reaches, and what GRPO adds), then the experiment
+# this section has been asking for: choose on tuning seeds, freeze the recipe, report it once
+# on fresh seeds, paired against the preset, each lever also removed on its own.
+#
+# {{TEMPLATE_PROBE_LOGS}}
 #
 # The next cell re-runs the ablation: shrunk to seconds on the tiny model in smoke mode, and
 # with real weights only if you set `RUN_EXPERIMENTS = True` (it is the main job several times
