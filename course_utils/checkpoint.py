@@ -58,13 +58,14 @@ def filesystem_error(err: OSError, run_dir: Path) -> "CheckpointError | None":
     """A one-line CheckpointError for a file-system failure on the run directory (its path and
     its cause), or None for an OSError of another kind, which is left to propagate."""
     cause = FILESYSTEM_CAUSES.get(err.errno)
-    if cause is None:
-        return None
     run_dir = Path(run_dir).absolute()
     if err.filename is not None:   # only the run directory, a file in it or a folder above it
         target = Path(os.fsdecode(err.filename)).absolute()
         if not (target == run_dir or run_dir in target.parents or target in run_dir.parents):
             return None
+        # an I/O error, a lost network or Drive mount, ...: the file and what the system said
+        cause = cause or ("check the disk or the mounted drive it is on, then continue with "
+                          "--resume")
     elif err.errno not in (errno.ENOSPC, errno.EDQUOT):
         return None
     path = err.filename or run_dir
@@ -210,8 +211,10 @@ def save(run_dir: Path, model, tokenizer, state: dict) -> Path:
         tokenizer.save_pretrained(tmp)
         torch.save(state, tmp / STATE_FILE)
         _write_manifest(tmp, state.get("step", 0))
-    except Exception as err:
+    except BaseException as err:
         shutil.rmtree(tmp, ignore_errors=True)
+        if not isinstance(err, (OSError, RuntimeError)) and type(err).__name__ != "SafetensorError":
+            raise   # a stop request, a bug: never relabelled as a full disk
         # safetensors and torch.save report a full disk in their own words ("inline_container",
         # "I/O error") that never mention space: say what it was, once the half-written copy
         # is gone and the previous checkpoint is known to be whole

@@ -217,7 +217,7 @@ class Config:
         need(self.dataset is None or self.prompt_source == "openwebtext", "dataset",
              "it is read only with prompt_source='openwebtext'; drop it, or add --prompt_source "
              "openwebtext")
-        need(len(str(self.out_dir)) < 4096 and all(len(part.encode()) <= 255 for part in
+        need(len(str(self.out_dir)) < 4096 and all(len(os.fsencode(part)) <= 255 for part in
                                                    Path(str(self.out_dir)).parts), "out_dir",
              "a folder name in it is longer than the file system allows (255 bytes); choose a "
              "shorter out_dir")

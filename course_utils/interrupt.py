@@ -40,6 +40,9 @@ class StopRequests:
         # the step of the newest checkpoint on disk, kept up to date by the training loop; None
         # while the run has none (set-up, the first evaluation, the steps before the first save)
         self.checkpoint_step: int | None = None
+        # False until the run has changed out_dir (cleared it, written its config): a stop
+        # before that leaves the directory as it was, and the same command starts over
+        self.started = False
         self._previous = {}
 
     def __enter__(self) -> "StopRequests":
@@ -61,11 +64,15 @@ class StopRequests:
             print(f"\n[course_utils] {signal.Signals(signum).name}: stopping after this step, then "
                   f"saving a checkpoint (send it again to stop at once)", flush=True)
             return
+        name = signal.Signals(signum).name
+        if not self.started:
+            raise Interrupted(f"stopped on {name} during set-up; nothing in the run directory was "
+                              f"changed: run the same command again", signum)
         where = (f"the checkpoint at step {self.checkpoint_step} stands" if self.checkpoint_step
                  else "no checkpoint had been written yet, so the run will start from the beginning")
         what = "before the step in flight finished" if self.deferring else "outside a training step"
-        raise Interrupted(f"stopped on {signal.Signals(signum).name} {what}; {where}. To continue, "
-                          f"{self.how_to_resume}", signum)
+        raise Interrupted(f"stopped on {name} {what}; {where}. To continue, {self.how_to_resume}",
+                          signum)
 
     def stopped(self, step: int, total: int) -> Interrupted:
         """The exception to raise once the loop has saved a checkpoint after ``step``."""

@@ -89,7 +89,7 @@ def check_available(name: str) -> None:
         return
     fix = (f"use the embedded model ('{EMBEDDED}', offline), a directory written by "
            "save_pretrained, or a hub id such as Qwen/Qwen2.5-0.5B-Instruct")
-    if any(len(part.encode()) > 255 for part in Path(name).parts):
+    if any(len(os.fsencode(part)) > 255 for part in Path(name).parts):
         raise ModelNotAvailable(f"model {name[:40]!r}...: a name in it is longer than a file "
                                 f"system allows (255 bytes); {fix}")
     path = Path(name).expanduser()

@@ -246,8 +246,8 @@ def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) ->
 
     (``shaped_score``'s relative credit, which still ranks very long replies, averaged with one
     in whole characters, so the last few characters are worth as much as the last few units of
-    the digit sum; with the relative credit alone a reply one character short keeps 98% of its
-    length credit, and a policy learns the digits and stops a few characters off), and
+    the digit sum; with the relative credit alone a reply one character short of 32 keeps 97%
+    of its length credit, and a policy learns the digits and stops a few characters off), and
 
     digit credit = 0                          if the digits add up to 0 (none, or only zeros)
                                               and S > 0,
@@ -262,8 +262,8 @@ def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) ->
     ``binary_reward`` is 1.
     """
     miss = abs(result.n_chars - target_chars)
-    # half relative (a reply 60 characters long still beats one 90 long), half in whole
-    # characters (one character short loses a quarter of the length credit, not 1.5%)
+    # half relative (the credit of shaped_score), half in whole characters: against 32
+    # characters, one character short now loses a quarter of the length credit, not 3%
     length_credit = 0.5 / (1.0 + miss / max(target_chars, 1)) + 0.5 / (1.0 + miss)
     counts = result.digit_sum > 0 or target_digit_sum == 0
     digit_credit = 1.0 / (1.0 + abs(result.digit_sum - target_digit_sum)) if counts else 0.0

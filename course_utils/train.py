@@ -716,6 +716,7 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
                   f"steps): nothing to do")
         return summary
 
+    stop.checkpoint_step = state["step"] if state else None
     policy = setup(cfg, init_from=found)
     # With several processes (accelerate launch) all of them train; only the main one evaluates
     # and writes files (the model is the same on every process after each step).
@@ -740,21 +741,21 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
         if policy.entropy_control:
             policy.entropy_control.load_state_dict(state["entropy_control"])
         start_step = state["step"]
-        stop.checkpoint_step = start_step
         if main:
             log.truncate_after(start_step)
             print(f"[course_utils] resumed from {found} at step {start_step}")
 
     train_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=False)
     eval_prompts = data.make_prompts(cfg, policy.tokenizer, held_out=True)
-    # Only now, with the model and the prompts ready, is anything in run_dir replaced: a run
-    # refused above (a dataset offline, a model that does not load) leaves the directory as it
-    # was, so the corrected command runs without --overwrite, and --overwrite never deletes a
-    # run for a command that then fails.
+    # Only now, with the model and the prompts ready, is a run's file replaced: a run refused
+    # above (a dataset offline, a model that does not load) or stopped during set-up leaves the
+    # directory's run as it was, so the corrected command runs without --overwrite, and
+    # --overwrite does not delete a run for a command that fails while setting up.
     if main and state is None:
         checkpoint.clear(run_dir)
     if main:
         checkpoint.write_json(run_dir / "config.json", cfg.to_dict())
+    stop.started = True
     if cfg.target_sampling == "prioritized":
         policy.priority = curriculum.TargetPriority(train_prompts)
         if state:

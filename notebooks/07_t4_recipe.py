@@ -618,28 +618,32 @@ for key, value in mine.items():
 # shrinks above it), `target_sampling="prioritized"` (target digit sums drawn with more weight
 # the less often they pass, `course_utils/curriculum.py`) and `reward="graded"` (the digit
 # credit counted in whole units of the digit sum, nothing for a reply without digits, and half
-# of the length credit counted in whole characters). The table holds the runs of all three
-# together, on tuning seed 0 only (`notebooks/results/template-probes/`), the main job's length
-# and then a longer budget:
+# of the length credit counted in whole characters). The table holds one run of all three
+# together, on tuning seed 0 only (`notebooks/results/template-probes/`), read at two points:
+# at the main job's length, and continued to a longer budget (the shorter run's log is, step
+# for step, the start of the longer one's). Both also sampled in bf16 with the fast kernels,
+# which changes the arithmetic, not the recipe, so compare them with the main job's *kind* of
+# ending rather than its numbers:
 #
 # | change to the cpu preset | seed | steps | held-out greedy pass (both) | one-digit targets | two-digit targets | length pass | digit-sum pass | distinct completions (of the held-out prompts) | most frequent completion |
 # |---|---|---|---|---|---|---|---|---|---|
 # | reward graded, entropy_bonus adaptive, entropy_coef 0.005, target_sampling prioritized, precision auto, kernels fast | 0 | 60 | 6.2% | 9.5% | 0.0% | 7.8% | 65.6% | 50 of 64 | `9 items fit a tool!` |
 # | reward graded, entropy_bonus adaptive, entropy_coef 0.005, target_sampling prioritized, precision auto, kernels fast | 0 | 160 | 65.6% | 100.0% | 0.0% | 100.0% | 65.6% | 12 of 64 | `9 Points crumbles on a façade![)` |
 #
-# Read the last two columns before the pass rates. At the main job's length the template is
-# gone: the policy continues each snippet in its own words with a digit at the front, but it
-# has not learned the exact length, so few replies pass both constraints. Given the longer
-# budget it learned the length, and with it a new template: one sentence with the digit in
-# front, which passes every one-digit target and no two-digit one. The training logs say why
-# (the list below is read from them). In neither run did a single *sampled* completion pass a two-digit
-# target, so no group ever held a two-digit pass to give an advantage to. In the longer run,
-# prioritized sampling did what it is for (the two-digit targets' share of the samples grew),
-# and the entropy fell below `entropy_target`, the adaptive weight climbed to its cap
-# (`entropy_weight_max`), and the entropy stayed below the target. What is missing is exploration that
-# finds a reply whose digits add up to a two-digit target; none of these levers, at these
-# settings, produced one. These are single-seed tuning runs, chosen from and reported on the
-# same seed: they say where to look, not that any lever works. Where to look next: larger
+# Read the last two columns before the pass rates. At the main job's length the one sentence
+# is gone, but not the format: most replies are a different short exclamation on the snippet's
+# topic, digit first, and the exact length is not learned yet, so few replies pass both
+# constraints. Given the longer budget the policy learned the length, and with it a new
+# template: one sentence with the digit in front, which passes every one-digit target and no
+# two-digit one. The training log says why (the list below is read from it; the longer run's
+# counts include the shorter one's). In the whole run not a single *sampled* completion passed
+# a two-digit target, so no group ever held a two-digit pass to give an advantage to. Over the
+# longer budget, prioritized sampling did what it is for (the two-digit targets' share of the
+# samples grew), and the entropy fell below `entropy_target`, the adaptive weight climbed to
+# its cap (`entropy_weight_max`), and the entropy stayed below the target. What is missing is
+# exploration that finds a reply whose digits add up to a two-digit target; none of these
+# levers, at these settings, produced one. This is a single-seed tuning run, chosen from and
+# reported on the same seed: it says where to look, not that any lever works. Where to look next: larger
 # groups for the unsolved targets, a higher cap on the entropy weight, a warm start as a
 # labelled comparison (what supervision alone reaches, and what GRPO adds), then the experiment
 # this section has been asking for: choose on tuning seeds, freeze the recipe, report it once

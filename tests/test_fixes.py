@@ -478,6 +478,11 @@ def test_template_probe_sentences_hold_for_every_stored_run():
     logs = ablation.template_probe_logs(folder).splitlines()
     assert len(runs) == len(table) == len(logs) == 2
     short, long = runs
+    # the shorter run is, step for step, the start of the longer one (the lesson says so)
+    untimed = lambda rows: [{k: v for k, v in r.items() if "time" not in k and k != "tokens_per_s"}  # noqa: E731
+                            for r in rows]
+    read = lambda run: [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]  # noqa: E731
+    assert untimed(read(short)) == untimed(read(long))[:len(read(short))]
     for row, log, run in zip(table, logs, runs):
         after = json.loads((run / "summary.json").read_text())["after"]["greedy"]
         steps = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
@@ -487,8 +492,9 @@ def test_template_probe_sentences_hold_for_every_stored_run():
         assert after["pass_both_two_digit"] == 0.0
         texts = [s["completion"].strip() for s in after["samples"]]
         assert all(t[:1].isdigit() for t in texts)
-        if run == short:
+        if run == short:   # not one sentence, but a format: short, digit first, an exclamation
             assert after["distinct_completions"] >= len(texts) / 2
+            assert sum(t.endswith("!") for t in texts) >= len(texts) / 2
             assert after["pass_digits"] >= after["pass_length"] + 0.3
             assert max(r["entropy_weight"] for r in steps) == 0.0
         else:

@@ -168,6 +168,21 @@ def test_a_full_disk_during_a_checkpoint_says_so_and_keeps_the_last_one(tmp_path
         checkpoint.save(tmp_path, Full(), Full(), {"step": 4})
 
 
+def test_an_io_error_in_the_run_directory_is_one_line_too(tmp_path):
+    err = OSError(5, "Input/output error", str(tmp_path / "run" / "metrics.jsonl"))
+    assert "check the disk or the mounted drive" in str(checkpoint.filesystem_error(err, tmp_path / "run"))
+
+
+def test_a_stop_during_a_checkpoint_write_is_never_called_a_full_disk(tmp_path, monkeypatch):
+    class Stopped:
+        def save_pretrained(self, path):
+            raise interrupt.Interrupted("stopped on SIGINT", 2)
+    monkeypatch.setattr(checkpoint, "_free_bytes", lambda path: 3 * 2**20)
+    with pytest.raises(interrupt.Interrupted):
+        checkpoint.save(tmp_path, Stopped(), Stopped(), {"step": 4})
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_os_error_elsewhere_is_not_blamed_on_the_run_directory(tmp_path):
     err = FileNotFoundError(2, "No such file or directory", "/somewhere/else/model.gguf")
     assert checkpoint.filesystem_error(err, tmp_path / "run") is None
@@ -296,6 +311,9 @@ def test_command_line_mistakes_are_one_line_before_anything_is_written(tmp_path,
 
 def test_an_immediate_stop_says_whether_a_checkpoint_stands():
     stop = interrupt.StopRequests("run: again")
+    with pytest.raises(interrupt.Interrupted, match="during set-up; nothing .* changed: run the same command"):
+        stop._handle(interrupt.signal.SIGTERM, None)   # an --overwrite still in set-up
+    stop.started = True
     with pytest.raises(interrupt.Interrupted, match="no checkpoint had been written yet"):
         stop._handle(interrupt.signal.SIGTERM, None)
     stop.checkpoint_step = 4
@@ -335,6 +353,7 @@ def test_rewards_read_numpy_and_torch_targets_as_numbers(targets):
 def test_no_progress_also_silences_transformers_bars(finished_run, tmp_path, capsys):
     from transformers.utils import logging as transformers_logging
 
+    transformers_logging.enable_progress_bar()
     try:
         _main(tmp_path / "quiet")
         assert not transformers_logging.is_progress_bar_enabled()
