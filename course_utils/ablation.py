@@ -146,19 +146,29 @@ def probe_outcome(steps: list[dict]) -> str:
     return "still exploring"
 
 
+def stored_runs(folder: Path, marker: str) -> list[Path]:
+    """The run folders in ``folder`` that hold ``marker`` (a file every run of a table has)."""
+    return sorted(p for p in Path(folder).iterdir() if (p / marker).exists())
+
+
+def changes(config: dict, ignore: set[str]) -> str:
+    """How a stored run's config differs from the cpu preset, as "name value, ..."."""
+    preset = load_config("cpu").to_dict()
+    return ", ".join(f"{k} {config[k]}" for k in config if k not in ignore and config[k] != preset.get(k))
+
+
 def probes(folder: Path) -> str:
     """A markdown table of single-seed probes of other levers (one run per sub-folder, each the
     cpu preset with the changes its config.json records), read from their stored files."""
-    preset = load_config("cpu").to_dict()
     ignore = {"seed", "out_dir", "max_steps"}
     lines = ["| change to the cpu preset | seed | steps run | sampled pass (both), last 5 steps | "
              "length pass (batch trained on), last 5 | entropy, last 5 | distinct completions "
              "per batch, last 5 | how it ended | held-out greedy pass (both) |", "|" + "---|" * 9]
-    for run in sorted(p for p in Path(folder).iterdir() if (p / "metrics.jsonl").exists()):
+    for run in stored_runs(folder, "metrics.jsonl"):
         config = json.loads((run / "config.json").read_text())
         steps = records(run)
         mean = lambda key: tail_mean(steps, key)  # noqa: E731
-        change = ", ".join(f"{k} {config[k]}" for k in config if k not in ignore and config[k] != preset[k])
+        change = changes(config, ignore)
         summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else {}
         held_out = "not evaluated (stopped by hand)"
         if "after" in summary:
@@ -176,17 +186,15 @@ def template_probes(folder: Path) -> str:
     """A markdown table of the tuning runs aimed at the template (one run per sub-folder, each
     the cpu preset with the changes its config.json records): held-out greedy pass rates split
     by the number of digits the target needs, and what the policy writes, from stored files."""
-    preset = load_config("cpu").to_dict()
     ignore = {"seed", "out_dir", "max_steps", "epochs"}
     lines = ["| change to the cpu preset | seed | steps | held-out greedy pass (both) | one-digit "
              "targets | two-digit targets | length pass | digit-sum pass | distinct completions "
              "(of the held-out prompts) | most frequent completion |", "|" + "---|" * 10]
-    for run in sorted(p for p in Path(folder).iterdir() if (p / "summary.json").exists()):
+    for run in stored_runs(folder, "summary.json"):
         config = json.loads((run / "config.json").read_text())
         summary = json.loads((run / "summary.json").read_text())
         after = summary["after"]["greedy"]
-        change = ", ".join(f"{k} {config[k]}" for k in config
-                           if k not in ignore and config[k] != preset.get(k))
+        change = changes(config, ignore)
         top = top_completion(after["samples"]).strip().replace("|", "/")
         lines.append(f"| {change} | {config['seed']} | {summary['steps']} | {after['pass_both']:.1%} | "
                      f"{after['pass_both_one_digit']:.1%} | {after['pass_both_two_digit']:.1%} | "
@@ -200,7 +208,7 @@ def template_probe_logs(folder: Path) -> str:
     completions were sampled for them and how many passed, their share of the samples early and
     late, and the entropy and adaptive entropy weight late in the run (a markdown list)."""
     lines = []
-    for run in sorted(p for p in Path(folder).iterdir() if (p / "metrics.jsonl").exists()):
+    for run in stored_runs(folder, "metrics.jsonl"):
         config = json.loads((run / "config.json").read_text())
         steps = records(run)
         quarter = max(1, len(steps) // 4)

@@ -41,3 +41,27 @@ def resume_pair(tmp_path):
         return records, params
 
     return run
+
+
+@pytest.fixture(scope="session")
+def finished_run(tmp_path_factory):
+    """A finished smoke run (3 steps, a checkpoint after each), shared read-only by the tests
+    of the run directory; a test that changes a run works on ``copy_run()``."""
+    from course_utils import train
+    from course_utils.config import load_config
+
+    out = tmp_path_factory.mktemp("finished") / "run"
+    train.train(load_config("smoke", out_dir=str(out), max_steps=3, save_every=1), progress=False)
+    return out
+
+
+@pytest.fixture
+def copy_run(finished_run, tmp_path):
+    """A function that copies the finished run into this test's tmp_path (without its lock)."""
+    import shutil
+
+    def copy():
+        run = tmp_path / "run"
+        shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns(".lock"))
+        return run
+    return copy

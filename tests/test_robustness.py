@@ -24,19 +24,6 @@ def _main(out, *args):
                        "--save_every", "1", "--no-progress", *args])
 
 
-@pytest.fixture(scope="module")
-def finished_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("finished") / "run"
-    train.train(_cfg(out), progress=False)
-    return out
-
-
-def _copy(finished_run, tmp_path):
-    run = tmp_path / "run"
-    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns(".lock"))
-    return run
-
-
 def _one_line_error(exc_info) -> str:
     message = str(exc_info.value.code if isinstance(exc_info.value, SystemExit) else exc_info.value)
     assert "\n" not in message, message
@@ -47,8 +34,8 @@ def _one_line_error(exc_info) -> str:
 
 @pytest.mark.parametrize("damage", ["weights", "state"])
 def test_a_checkpoint_without_a_manifest_is_set_aside_and_the_previous_one_resumed(
-        finished_run, tmp_path, damage, capsys):
-    run = _copy(finished_run, tmp_path)
+        copy_run, tmp_path, damage, capsys):
+    run = copy_run()
     newest = run / "checkpoint"
     (newest / checkpoint.MANIFEST).unlink()
     target = newest / ("model.safetensors" if damage == "weights" else checkpoint.STATE_FILE)
@@ -60,8 +47,8 @@ def test_a_checkpoint_without_a_manifest_is_set_aside_and_the_previous_one_resum
 
 
 def test_a_finished_run_whose_only_checkpoint_lost_its_manifest_is_not_called_finished(
-        finished_run, tmp_path):
-    run = _copy(finished_run, tmp_path)
+        copy_run, tmp_path):
+    run = copy_run()
     shutil.rmtree(run / "checkpoint-previous")
     (run / "checkpoint" / checkpoint.MANIFEST).unlink()
     with pytest.raises(checkpoint.CheckpointError, match="no whole checkpoint is left"):
@@ -71,9 +58,9 @@ def test_a_finished_run_whose_only_checkpoint_lost_its_manifest_is_not_called_fi
 # --- 2: the report and the curves are derived files, regenerated when missing ---
 
 @pytest.mark.parametrize("missing", [["report.md"], ["curves.png"], ["report.md", "curves.png"]])
-def test_resuming_a_finished_run_rewrites_a_missing_report_and_curves(finished_run, tmp_path,
+def test_resuming_a_finished_run_rewrites_a_missing_report_and_curves(copy_run, tmp_path,
                                                                         missing):
-    run = _copy(finished_run, tmp_path)
+    run = copy_run()
     report = (run / "report.md").read_text()
     for name in missing:
         (run / name).unlink()
@@ -88,9 +75,9 @@ def test_resuming_a_finished_run_rewrites_a_missing_report_and_curves(finished_r
     ("summary.json", ""), ("summary.json", '{"before": {"samp'), ("summary.json", "\x00\x01garbage"),
     ("summary.json", "[1, 2]"), ("config.json", ""), ("config.json", "null"),
     ("metrics.jsonl", None)])
-def test_damaged_run_files_give_a_one_line_error_naming_the_file(finished_run, tmp_path, name,
+def test_damaged_run_files_give_a_one_line_error_naming_the_file(copy_run, tmp_path, name,
                                                                    content):
-    run = _copy(finished_run, tmp_path)
+    run = copy_run()
     if content is None:   # a null last line: JSON, but not a record
         with open(run / name, "a") as f:
             f.write("null\n")
@@ -120,11 +107,11 @@ def test_an_out_dir_that_is_a_file_or_under_a_file_is_one_line(tmp_path):
 
 @pytest.mark.skipif(os.name == "nt" or (hasattr(os, "geteuid") and os.geteuid() == 0),
                     reason="root ignores folder permissions")
-def test_an_unwritable_folder_and_a_read_only_finished_run_are_one_line(finished_run, tmp_path):
+def test_an_unwritable_folder_and_a_read_only_finished_run_are_one_line(copy_run, tmp_path):
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(stat.S_IRUSR | stat.S_IXUSR)
-    run = _copy(finished_run, tmp_path)
+    run = copy_run()
     (run / ".lock").unlink(missing_ok=True)
     run.chmod(stat.S_IRUSR | stat.S_IXUSR)
     try:
@@ -244,9 +231,9 @@ def test_a_refused_set_up_leaves_nothing_behind_and_the_corrected_command_runs(t
     assert (out / "report.md").exists()
 
 
-def test_a_failed_overwrite_keeps_the_run_it_would_have_replaced(finished_run, tmp_path,
+def test_a_failed_overwrite_keeps_the_run_it_would_have_replaced(copy_run, tmp_path,
                                                                  monkeypatch):
-    run = _copy(finished_run, tmp_path)
+    run = copy_run()
     before = sorted(checkpoint.run_contents(run))
 
     def offline(cfg, tokenizer, held_out):

@@ -23,23 +23,10 @@ def _snapshot(run_dir):
             if p.is_file() and p.name != ".lock"}
 
 
-@pytest.fixture(scope="module")
-def finished_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("finished") / "run"
-    train.train(_cfg(out), progress=False)
-    return out
-
-
-def _copy(finished_run, tmp_path):
-    run = tmp_path / "run"
-    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns(".lock"))
-    return run
-
-
 # --- finding 2: earlier runs are not overwritten silently ---
 
-def test_a_fresh_run_refuses_a_directory_that_holds_a_run(finished_run, tmp_path):
-    run = _copy(finished_run, tmp_path)
+def test_a_fresh_run_refuses_a_directory_that_holds_a_run(copy_run, tmp_path):
+    run = copy_run()
     before = _snapshot(run)
     with pytest.raises(checkpoint.CheckpointError, match="already holds a run.*--resume.*--overwrite"):
         train.train(_cfg(run), progress=False)
@@ -48,8 +35,8 @@ def test_a_fresh_run_refuses_a_directory_that_holds_a_run(finished_run, tmp_path
     assert _snapshot(run) == before
 
 
-def test_overwrite_replaces_the_run_and_contradicts_resume(finished_run, tmp_path):
-    run = _copy(finished_run, tmp_path)
+def test_overwrite_replaces_the_run_and_contradicts_resume(copy_run, tmp_path):
+    run = copy_run()
     (run / "notes.txt").write_text("mine")          # not a run file: overwrite leaves it alone
     with pytest.raises(ConfigError, match="resume and overwrite"):
         train.train(_cfg(run, seed=1), resume=True, overwrite=True, progress=False)
@@ -59,8 +46,8 @@ def test_overwrite_replaces_the_run_and_contradicts_resume(finished_run, tmp_pat
     assert [r["step"] for r in checkpoint.MetricsLog(run / "metrics.jsonl").read()] == [1, 2, 3]
 
 
-def test_resuming_a_finished_run_changes_nothing(finished_run, tmp_path):
-    run = _copy(finished_run, tmp_path)
+def test_resuming_a_finished_run_changes_nothing(copy_run, tmp_path):
+    run = copy_run()
     before = _snapshot(run)
     summary = train.train(_cfg(run), resume=True, progress=False)
     assert summary == json.loads((run / "summary.json").read_text())
@@ -77,9 +64,9 @@ def _without_checkpoints(run):
     ("checkpoints deleted, unfinished", "metrics reach step 3, past the first checkpoint at step 1"),
     ("another config", "another run's .*seed"),
 ])
-def test_resume_without_a_checkpoint_refuses_a_run_it_would_overwrite(finished_run, tmp_path,
+def test_resume_without_a_checkpoint_refuses_a_run_it_would_overwrite(copy_run, tmp_path,
                                                                       damage, reason):
-    run = _copy(finished_run, tmp_path)
+    run = copy_run()
     _without_checkpoints(run)
     cfg = _cfg(run)
     if damage == "checkpoints deleted, unfinished":
@@ -93,8 +80,8 @@ def test_resume_without_a_checkpoint_refuses_a_run_it_would_overwrite(finished_r
     assert _snapshot(run) == before
 
 
-def test_resume_restarts_a_run_that_stopped_before_its_first_checkpoint(finished_run, tmp_path):
-    run = _copy(finished_run, tmp_path)
+def test_resume_restarts_a_run_that_stopped_before_its_first_checkpoint(finished_run, copy_run, tmp_path):
+    run = copy_run()
     _without_checkpoints(run)
     summary = json.loads((run / "summary.json").read_text())
     checkpoint.write_json(run / "summary.json", {"before": summary["before"]})
@@ -111,9 +98,9 @@ def test_resume_restarts_a_run_that_stopped_before_its_first_checkpoint(finished
     ("summary.json", "no before-training evaluation"),
     ("metrics.jsonl", "ends at step 1 but the checkpoint is at step 3"),
 ])
-def test_resume_refuses_a_checkpoint_without_its_log_or_summary(finished_run, tmp_path, damage,
+def test_resume_refuses_a_checkpoint_without_its_log_or_summary(copy_run, tmp_path, damage,
                                                                 message):
-    run = _copy(finished_run, tmp_path)
+    run = copy_run()
     if damage == "summary.json":
         (run / "summary.json").unlink()
     else:
@@ -141,9 +128,9 @@ def test_the_previous_checkpoint_is_kept_with_a_manifest(finished_run):
 
 
 @pytest.mark.parametrize("garbled", ["model.safetensors", checkpoint.STATE_FILE])
-def test_a_damaged_checkpoint_is_set_aside_and_the_previous_one_resumed(finished_run, tmp_path,
+def test_a_damaged_checkpoint_is_set_aside_and_the_previous_one_resumed(finished_run, copy_run, tmp_path,
                                                                         capsys, garbled):
-    run = _copy(finished_run, tmp_path)
+    run = copy_run()
     _garble(run / "checkpoint" / garbled)
     assert garbled in checkpoint.verify(run / "checkpoint")
     train.train(_cfg(run), resume=True, progress=False)
@@ -158,8 +145,8 @@ def test_a_damaged_checkpoint_is_set_aside_and_the_previous_one_resumed(finished
     assert [r["step"] for r in checkpoint.MetricsLog(run / "metrics.jsonl").read()] == [1, 2, 3]
 
 
-def test_when_every_checkpoint_is_damaged_resume_refuses(finished_run, tmp_path):
-    run = _copy(finished_run, tmp_path)
+def test_when_every_checkpoint_is_damaged_resume_refuses(copy_run, tmp_path):
+    run = copy_run()
     _garble(run / "checkpoint" / "model.safetensors")
     (run / "checkpoint-previous" / checkpoint.MANIFEST).write_text("{")
     with pytest.raises(checkpoint.CheckpointError, match="no whole checkpoint is left.*--overwrite"):
@@ -169,8 +156,8 @@ def test_when_every_checkpoint_is_damaged_resume_refuses(finished_run, tmp_path)
 
 # --- unique temporary names, and what a killed process left behind ---
 
-def test_leftovers_of_a_killed_process_are_removed_under_the_lock(finished_run, tmp_path):
-    run = _copy(finished_run, tmp_path)
+def test_leftovers_of_a_killed_process_are_removed_under_the_lock(copy_run, tmp_path):
+    run = copy_run()
     (run / ".checkpoint-tmp-dead").mkdir()
     (run / ".summary.json-dead.tmp").write_text("{")
     train.train(_cfg(run, max_steps=4), resume=True, progress=False)
