@@ -203,6 +203,30 @@ def template_probes(folder: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def completions_by_target(runs: list[Path]) -> str:
+    """What each run's policy writes per target digit sum (held-out, greedy): the prompts with
+    that target, how many pass both constraints, and the most frequent completion with the digit
+    sum it has (a markdown table, one column group per run, read from stored summaries)."""
+    afters = [json.loads((run / "summary.json").read_text())["after"]["greedy"]["samples"]
+              for run in runs]
+    header = "| target digit sum | " + " | ".join(
+        f"seed {json.loads((run / 'config.json').read_text())['seed']}: passed | most frequent "
+        f"completion (its digit sum)" for run in runs) + " |"
+    lines = [header, "|" + "---|" * (1 + 2 * len(runs))]
+    targets = sorted({s["target_digit_sum"] for samples in afters for s in samples})
+    for target in targets:
+        cells = []
+        for samples in afters:
+            mine = [s for s in samples if s["target_digit_sum"] == target]
+            passed = sum(s["n_chars"] == s["target_chars"] and s["digit_sum"] == target for s in mine)
+            top = top_completion(mine).strip().replace("|", "/") if mine else ""
+            sums = {s["digit_sum"] for s in mine if s["completion"].strip() == top}
+            cells += [f"{passed} of {len(mine)}", f"`{top}` ({', '.join(map(str, sorted(sums)))})"
+                      if mine else "-"]
+        lines.append(f"| {target} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def template_probe_logs(folder: Path) -> str:
     """What the template probes' training logs say about the two-digit targets: how many
     completions were sampled for them and how many passed, their share of the samples early and

@@ -54,8 +54,9 @@ class Config:
                                "partial credit relative to the target; 'sharp': 2/3 of 'shaped' plus 1/3 of "
                                "'binary', so a pass pays clearly more than a near miss; 'graded': the digit part in "
                                "whole units of the digit sum and 0 without digits, the length part half "
-                               "in whole characters (rewards.py)",
-                        ("binary", "shaped", "sharp", "graded"))
+                               "in whole characters; 'counted': 'graded' with the digit part halved per "
+                               "digit too few to reach the target (rewards.py)",
+                        ("binary", "shaped", "sharp", "graded", "counted"))
     # --- how much data -----------------------------------------------------------------------
     train_prompts: int = _f(1024, "number of distinct training prompts")
     eval_prompts: int = _f(100, "number of held-out prompts for before/after evaluation")

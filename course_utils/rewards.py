@@ -19,7 +19,8 @@ Where the targets come from: for an instruction-tuned model each prompt states i
 ``target_chars`` and ``target_digit_sum`` in the instruction (see ``data.build_prompt``); for a
 base model such as gpt2, which cannot read instructions, both are fixed by the config.
 
-Three rewards are provided, all with TRL's reward-function signature
+Five rewards are provided (and two one-constraint metrics, ``length_reward`` and
+``digit_sum_reward``), all with TRL's reward-function signature
 ``f(prompts, completions, **kwargs) -> list[float]``; the targets arrive as per-completion
 lists in ``kwargs``, exactly as TRL passes extra dataset columns:
 
@@ -30,6 +31,12 @@ lists in ``kwargs``, exactly as TRL passes extra dataset columns:
   It equals 1.0 exactly when ``binary_reward`` does.
 * ``sharp_reward``: 2/3 of the shaped score plus 1/3 of the binary one, so a pass pays clearly
   more than any near miss (see ``sharp_score``, and lesson 7, section 6, for why).
+* ``graded_reward``: partial credit counted in whole units of the digit sum (none without a
+  digit) and half in whole characters (``graded_score``);
+* ``counted_reward``: ``graded_reward`` with the digit credit halved for each digit a reply is
+  short of the fewest that can reach the target (``counted_score``, lesson 7, section 6.4).
+
+Every partial credit is exactly 1.0 when ``binary_reward`` is, and below 1 otherwise.
 """
 
 from __future__ import annotations
@@ -103,6 +110,7 @@ class RuleCheck:
     digit_sum: int
     length_ok: bool
     digits_ok: bool
+    n_digits: int = 0   # how many ASCII digits the text holds (zeros included)
 
     @property
     def passed(self) -> bool:
@@ -114,7 +122,8 @@ def check(completion: Any, target_chars: int, target_digit_sum: int) -> RuleChec
     text = completion_text(completion)
     n, s = len(text), digit_sum(text)
     return RuleCheck(n_chars=n, digit_sum=s, length_ok=n == target_chars,
-                     digits_ok=s == target_digit_sum)
+                     digits_ok=s == target_digit_sum,
+                     n_digits=sum(c in ASCII_DIGITS for c in text))
 
 
 def shaped_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
@@ -261,13 +270,21 @@ def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) ->
     earns no digit credit, so it is never a safe harbour. The score is 1 exactly when
     ``binary_reward`` is 1.
     """
-    miss = abs(result.n_chars - target_chars)
+    return 0.5 * _graded_length_credit(result, target_chars) + \
+        0.5 * _unit_digit_credit(result, target_digit_sum)
+
+
+def _graded_length_credit(result: RuleCheck, target_chars: int) -> float:
     # half relative (the credit of shaped_score), half in whole characters: against 32
     # characters, one character short now loses a quarter of the length credit, not 3%
-    length_credit = 0.5 / (1.0 + miss / max(target_chars, 1)) + 0.5 / (1.0 + miss)
+    miss = abs(result.n_chars - target_chars)
+    return 0.5 / (1.0 + miss / max(target_chars, 1)) + 0.5 / (1.0 + miss)
+
+
+def _unit_digit_credit(result: RuleCheck, target_digit_sum: int) -> float:
+    # 1 / (1 + units missed); nothing for a reply whose digits add up to 0 unless S is 0
     counts = result.digit_sum > 0 or target_digit_sum == 0
-    digit_credit = 1.0 / (1.0 + abs(result.digit_sum - target_digit_sum)) if counts else 0.0
-    return 0.5 * length_credit + 0.5 * digit_credit
+    return 1.0 / (1.0 + abs(result.digit_sum - target_digit_sum)) if counts else 0.0
 
 
 def graded_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
@@ -278,8 +295,42 @@ def graded_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) 
     return [graded_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
 
 
+def digits_needed(target_digit_sum: int) -> int:
+    """The fewest digits that can add up to the target: each adds at most 9."""
+    return -(-target_digit_sum // 9)
+
+
+def counted_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
+    """``graded_score`` whose digit credit also knows how many digits the target needs:
+
+    counted = 1/2 * length credit + 1/2 * digit credit * 2^-(digits short),
+
+    with the length credit and digit credit of ``graded_score``, and digits short =
+    max(0, digits_needed(S) - n_digits), digits_needed(S) = ceil(S / 9). Why: against S = 10 to
+    12 a one-digit reply can never pass (9 is the most one digit adds), yet ``graded_score``
+    pays "9" more digit credit than most pairs of digits (against S = 10, half of it), so a
+    policy that writes one digit into a template keeps its template on every target. Halved
+    for the missing digit, "9" earns 1/4 against S = 10, while any two digits within one unit
+    of 10 earn at least 1/2: the credit points towards writing the second digit, which the base
+    model does now and then. Digits that add up to S are never short (fewer than ceil(S/9)
+    digits cannot reach S), so the score is 1 exactly when ``binary_reward`` is 1.
+    """
+    short = max(0, digits_needed(target_digit_sum) - result.n_digits)
+    return 0.5 * _graded_length_credit(result, target_chars) + \
+        0.5 * _unit_digit_credit(result, target_digit_sum) * 0.5 ** short
+
+
+def counted_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """``graded_reward`` with the digit credit halved per digit too few to reach the target
+    (``counted_score``)."""
+    completions = _completions(completions)
+    n = len(completions)
+    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
+    return [counted_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+
+
 REWARDS = {"binary": binary_reward, "shaped": shaped_reward, "sharp": sharp_reward,
-           "graded": graded_reward}
+           "graded": graded_reward, "counted": counted_reward}
 
 
 def get_reward_fn(name: str):

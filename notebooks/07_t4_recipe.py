@@ -643,14 +643,74 @@ for key, value in mine.items():
 # its cap (`entropy_weight_max`), and the entropy stayed below the target. What is missing is
 # exploration that finds a reply whose digits add up to a two-digit target; none of these
 # levers, at these settings, produced one. This is a single-seed tuning run, chosen from and
-# reported on the same seed: it says where to look, not that any lever works. Where to look next: larger
-# groups for the unsolved targets, a higher cap on the entropy weight, a warm start as a
-# labelled comparison (what supervision alone reaches, and what GRPO adds), then the experiment
-# this section has been asking for: choose on tuning seeds, freeze the recipe, report it once
-# on fresh seeds, paired against the preset, each lever also removed on its own.
+# reported on the same seed: it says where to look, not that any lever works.
 #
 # - `steps060-graded-prioritized-adaptive-seed0`: 560 sampled completions for two-digit targets, 0 of them passing; the two-digit targets' share of the samples 30% in the first quarter of the run and 33% in the last; entropy in the last quarter 2.45 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.000 (cap 0.1)
 # - `steps160-graded-prioritized-adaptive-seed0`: 1688 sampled completions for two-digit targets, 0 of them passing; the two-digit targets' share of the samples 28% in the first quarter of the run and 43% in the last; entropy in the last quarter 0.18 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.100 (cap 0.1)
+#
+# **A partial credit that counts digits, and a KL term.** The logs name the barrier, and the
+# graded credit is part of it: against a two-digit target the best one-digit reply (a 9) earns
+# more digit credit than most replies with two digits, so nothing pays the policy for writing a
+# second digit until that digit is already right. `reward="counted"`
+# (`rewards.counted_score`) halves the digit credit for each digit a reply is short of the
+# fewest that can reach the target (one digit adds at most 9, so every two-digit target needs
+# two), and is still 1 exactly when the rule passes. The runs below add it to the three levers
+# above (`notebooks/results/counted-probes/`): the first on tuning seed 0 alone, the second
+# also with a k3 KL to the pre-trained model (`kl_coef=0.04`, DeepSeekMath's value) and a longer
+# budget, on the tuning seeds:
+#
+# | change to the cpu preset | seed | steps | held-out greedy pass (both) | one-digit targets | two-digit targets | length pass | digit-sum pass | distinct completions (of the held-out prompts) | most frequent completion |
+# |---|---|---|---|---|---|---|---|---|---|
+# | reward counted, entropy_bonus adaptive, entropy_coef 0.01, entropy_weight_max 0.3, target_sampling prioritized, precision auto, kernels fast | 0 | 120 | 6.2% | 9.5% | 0.0% | 6.2% | 76.6% | 35 of 64 | `Decidadidadidadesadias = total = 1 = 9` |
+# | reward counted, kl_coef 0.04, entropy_bonus adaptive, entropy_coef 0.01, entropy_weight_max 0.3, target_sampling prioritized, precision auto, kernels fast | 0 | 150 | 89.1% | 100.0% | 68.2% | 100.0% | 89.1% | 9 of 64 | `Continue this text 38 characters` |
+# | reward counted, kl_coef 0.04, entropy_bonus adaptive, entropy_coef 0.01, entropy_weight_max 0.3, target_sampling prioritized, precision auto, kernels fast | 1 | 150 | 71.9% | 100.0% | 0.0% | 71.9% | 78.1% | 8 of 64 | `19 don't need no more explanation` |
+# | reward counted, kl_coef 0.04, entropy_bonus adaptive, entropy_coef 0.01, entropy_weight_max 0.3, target_sampling prioritized, precision auto, kernels fast | 2 | 150 | 73.4% | 93.0% | 33.3% | 100.0% | 73.4% | 8 of 64 | `Continue exactly 640 characters.` |
+#
+# - `steps120-counted-prioritized-adaptive-seed0`: 1104 sampled completions for two-digit targets, 21 of them passing; the two-digit targets' share of the samples 28% in the first quarter of the run and 27% in the last; entropy in the last quarter 1.39 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.000 (cap 0.3)
+# - `steps150-counted-prioritized-adaptive-kl-seed0`: 1688 sampled completions for two-digit targets, 57 of them passing; the two-digit targets' share of the samples 28% in the first quarter of the run and 43% in the last; entropy in the last quarter 0.70 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.170 (cap 0.3)
+# - `steps150-counted-prioritized-adaptive-kl-seed1`: 1808 sampled completions for two-digit targets, 6 of them passing; the two-digit targets' share of the samples 36% in the first quarter of the run and 56% in the last; entropy in the last quarter 0.84 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.030 (cap 0.3)
+# - `steps150-counted-prioritized-adaptive-kl-seed2`: 1576 sampled completions for two-digit targets, 84 of them passing; the two-digit targets' share of the samples 26% in the first quarter of the run and 41% in the last; entropy in the last quarter 0.54 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.250 (cap 0.3)
+#
+# Without the KL term the counted credit did what it was built for: sampled completions passed
+# two-digit targets, which none of the runs above ever did, and the digit-sum constraint passes
+# on most held-out prompts. But the text drifted away from language (its most frequent
+# completion is in the table) and the length did not settle in its budget, so few prompts pass
+# both. With the KL term the policy kept to English words and, on every tuning seed, passes
+# most one-digit targets; the two-digit ones it passes in part, and on one seed not at all.
+# What each seed writes, per target (greedy, held-out):
+#
+# | target digit sum | seed 0: passed | most frequent completion (its digit sum) | seed 1: passed | most frequent completion (its digit sum) | seed 2: passed | most frequent completion (its digit sum) |
+# |---|---|---|---|---|---|---|
+# | 3 | 5 of 5 | `Continue this text 3 characters.` (3) | 4 of 4 | `3 don't need no more explanation` (3) | 0 of 3 | `Continue exactly 640 characters.` (10) |
+# | 4 | 4 of 4 | `Continue this text 4 characters.` (4) | 6 of 6 | `4 don't need no more explanation` (4) | 8 of 8 | `Continue exactly 400 characters.` (4) |
+# | 5 | 7 of 7 | `Continue this text 5 characters.` (5) | 5 of 5 | `5 don't need no more explanation` (5) | 5 of 5 | `Continue exactly 500 characters.` (5) |
+# | 6 | 7 of 7 | `Continue this text 6 characters.` (6) | 6 of 6 | `6 don't need no more explanation` (6) | 5 of 5 | `Continue exactly 600 characters.` (6) |
+# | 7 | 4 of 4 | `Continue this text 7 characters.` (7) | 6 of 6 | `7 don't need no more explanation` (7) | 9 of 9 | `Continue exactly 700 characters.` (7) |
+# | 8 | 11 of 11 | `Continue this text 8 characters.` (8) | 9 of 9 | `8 don't need no more explanation` (8) | 8 of 8 | `Continue exactly 800 characters.` (8) |
+# | 9 | 4 of 4 | `Continue this text 9 characters.` (9) | 10 of 10 | `9 don't need no more explanation` (9) | 5 of 5 | `Continue exactly 900 characters.` (9) |
+# | 10 | 0 of 7 | `Continue this text 38 characters` (11) | 0 of 4 | `19 don't need no more explanation` (10) | 7 of 7 | `Continue exactly 640 characters.` (10) |
+# | 11 | 10 of 10 | `Continue this text 38 characters` (11) | 0 of 9 | `19 don't need no more explanation` (10) | 0 of 4 | `Continue exactly 640 characters.` (10) |
+# | 12 | 5 of 5 | `Continue this text 48 characters` (12) | 0 of 5 | `19 don't need no more explanation` (10) | 0 of 10 | `Continue exactly 640 characters.` (10) |
+#
+# Every seed wrote a template: one sentence per seed, a different one on each, with a number in
+# a slot (one seed drops its full stop where the number has two digits, which keeps the reply
+# at the target length). For most one-digit targets the number is the target (or the target
+# followed by zeros, whose digits add up to the same). For a two-digit target it is never the
+# target (copying `12` would add up to 3) but a number whose digits add up to one of the
+# two-digit targets, which the base model did not write for any held-out prompt and which no
+# sampled completion of the earlier runs ever turned into a pass: GRPO found it. What no seed
+# found is the skill behind it, writing a number with a given digit sum. Each seed found fewer
+# such numbers than there are two-digit targets, and a number serves only the target its digits
+# add up to, so where a seed writes one number for several targets, at most one of them can
+# pass; on one seed the only such number it found makes the reply one character too long, and
+# no two-digit target passes. Read the rows as tuning evidence: the two changes (the KL term,
+# the longer budget) were made together and chosen while looking at seed 0, every seed here is
+# a tuning seed, and the budget is longer than the main job's 15 minutes. The `cpu` preset
+# keeps its recipe until one is frozen and reported once on fresh seeds, paired against the
+# preset, with each lever removed on its own. The leads the runs point to: exploration that
+# outlasts the first number found (the logs give each seed's entropy late in the run, and how
+# high the adaptive weight climbed), larger groups for the unsolved targets, and a warm start
+# as a labelled comparison (what supervision alone reaches, and what GRPO adds).
 #
 # The next cell re-runs the ablation: shrunk to seconds on the tiny model in smoke mode, and
 # with real weights only if you set `RUN_EXPERIMENTS = True` (it is the main job several times

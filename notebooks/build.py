@@ -142,6 +142,11 @@ def template_probes_markdown() -> str:
     return ablation.template_probes(RESULTS / "template-probes")
 
 
+def counted_kl_runs() -> list[Path]:
+    """The counted-credit runs with the KL term, one per tuning seed (lesson 7, 6.4)."""
+    return sorted((RESULTS / "counted-probes").glob("steps150-counted-prioritized-adaptive-kl-seed*"))
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -204,6 +209,13 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "TEMPLATE_PROBES", template_probes_markdown())
         text = fill_markdown(text, "TEMPLATE_PROBE_LOGS",
                              ablation.template_probe_logs(RESULTS / "template-probes"))
+    if "{{COUNTED_PROBES}}" in text:
+        from course_utils import ablation
+        text = fill_markdown(text, "COUNTED_PROBES", ablation.template_probes(RESULTS / "counted-probes"))
+        text = fill_markdown(text, "COUNTED_PROBE_LOGS",
+                             ablation.template_probe_logs(RESULTS / "counted-probes"))
+        text = fill_markdown(text, "COUNTED_BY_TARGET",
+                             ablation.completions_by_target(counted_kl_runs()))
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))

@@ -506,3 +506,80 @@ def test_template_probe_sentences_hold_for_every_stored_run():
             assert share[1] > share[0]
             assert max(r["entropy_weight"] for r in steps) == config["entropy_weight_max"]
             assert max(r["entropy"] for r in steps[-q:]) < config["entropy_target"]
+
+
+def test_counted_probe_sentences_hold_for_every_stored_run():
+    """Lesson 7, 6.4's sentences on the counted-credit runs, checked on their files: without the
+    KL term sampled completions passed two-digit targets (none of the template probes did) and
+    the digit sum passes on most held-out prompts, but few pass both, in made-up words; with it,
+    every seed writes one sentence of English words with a number in a slot (a different
+    sentence per seed): for most one-digit targets the target (or it followed by zeros), for two-digit
+    ones never the target but a number whose digits add up to a two-digit target, fewer numbers
+    than targets, each passing only its own digit sum; some two-digit targets pass on some seed
+    and none on one, whose number makes the reply a character too long; nothing passed a
+    two-digit target before training; the budget is longer than the main job's 15 minutes."""
+    import json
+    import re
+    from pathlib import Path
+
+    from course_utils import ablation
+    folder = Path(__file__).resolve().parents[1] / "notebooks" / "results" / "counted-probes"
+    runs = sorted(p for p in folder.iterdir() if (p / "summary.json").exists())
+    table = ablation.template_probes(folder).splitlines()[2:]
+    logs = ablation.template_probe_logs(folder).splitlines()
+    assert len(runs) == len(table) == len(logs) >= 2
+    read = lambda run, name: json.loads((run / name).read_text())  # noqa: E731
+    steps = lambda run: [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]  # noqa: E731
+    no_kl = [r for r in runs if read(r, "config.json")["kl_coef"] == 0]
+    kl = [r for r in runs if read(r, "config.json")["kl_coef"] > 0]
+    assert len(no_kl) == 1 and [read(r, "config.json")["seed"] for r in no_kl] == [0]
+    assert [read(r, "config.json")["seed"] for r in kl] == list(range(len(kl)))
+    for run in runs:
+        config = read(run, "config.json")
+        assert config["reward"] == "counted" and config["target_sampling"] == "prioritized"
+        before = read(run, "summary.json")["before"]
+        assert before["greedy"]["pass_both_two_digit"] == before["sampled"]["pass_both_two_digit"] == 0
+    # without the KL term
+    (run,) = no_kl
+    after = read(run, "summary.json")["after"]["greedy"]
+    assert sum(r["passes_two_digit"] for r in steps(run)) > 0
+    assert after["pass_digits"] > 0.5 and after["pass_both"] < 0.25 and after["pass_length"] < 0.25
+    assert any(len(w) > 15 for w in ablation.top_completion(after["samples"]).split())
+    # with it: English words, most one-digit targets, two-digit ones in part, none on one seed
+    two_digit_rates, sentences, stops_dropped = [], set(), 0
+    for run in kl:
+        after = read(run, "summary.json")["after"]["greedy"]
+        texts = [s["completion"].strip() for s in after["samples"]]
+        assert all(re.fullmatch(r"[A-Za-z0-9 '.,!]+", t) for t in texts)
+        assert after["pass_both_one_digit"] > 0.5 and after["distinct_completions"] <= len(texts) / 4
+        two_digit_rates.append(after["pass_both_two_digit"])
+        by_target = {}
+        for s in after["samples"]:
+            by_target.setdefault(s["target_digit_sum"], []).append(s)
+        tops = {t: ablation.top_completion(samples).strip() for t, samples in by_target.items()}
+        # one sentence per seed with a number in a slot
+        frames = {re.sub(r"\d+", "N", top) for top in tops.values()}
+        stops_dropped += frames == {f.rstrip(".") for f in frames} | {f.rstrip(".") + "." for f in frames}
+        frames = {f.rstrip(".") for f in frames}
+        assert len(frames) == 1 and all(len(re.findall(r"\d+", top)) == 1 for top in tops.values())
+        sentences |= frames
+        numbers = {t: re.search(r"\d+", top).group() for t, top in tops.items()}
+        one_digit = [t for t in numbers if t < 10]
+        assert sum(numbers[t].rstrip("0") == str(t) for t in one_digit) > len(one_digit) / 2
+        for target, number in numbers.items():
+            if target < 10 and sum(map(int, number)) == target:
+                assert number.rstrip("0") == str(target)
+            if target >= 10:
+                assert number != str(target) and sum(map(int, number)) in range(10, 13)
+        two = {numbers[t] for t in numbers if t >= 10}
+        assert len(two) < len([t for t in numbers if t >= 10])
+        # a number serves only the target its digits add up to (and the right length)
+        for target, samples in by_target.items():
+            fits = sum(map(int, numbers[target])) == target and len(tops[target]) == 32
+            top_rows = [s for s in samples if s["completion"].strip() == tops[target]]
+            assert all((s["digit_sum"] == target and s["n_chars"] == 32) == fits for s in top_rows)
+        if after["pass_both_two_digit"] == 0:   # the seed whose only number is a character long
+            assert all(len(tops[t]) == 33 and sum(map(int, numbers[t])) >= 10 for t in numbers if t >= 10)
+    assert len(sentences) == len(kl) and stops_dropped == 1
+    assert 0.0 == min(two_digit_rates) < max(two_digit_rates) < 1.0
+    assert read(kl[0], "summary.json")["seconds"] > 15 * 60   # the main job's budget

@@ -142,3 +142,49 @@ def test_graded_reward_is_one_exactly_when_binary_is(text, target_chars, target_
     b = rewards.binary_reward(["p"], [text], **kw)[0]
     g = rewards.graded_reward(["p"], [text], **kw)[0]
     assert 0.0 < g <= 1.0 and (g == 1.0) == (b == 1.0)
+
+
+def test_counted_reward_halves_the_digit_credit_per_digit_too_few():
+    """'counted' is 'graded' with the digit part times 2^-(ceil(S/9) - digits), never below 0."""
+    def counted(text, L=10, S=12):
+        return rewards.counted_reward(["p"], [text], target_chars=[L], target_digit_sum=[S])[0]
+
+    def graded(text, L=10, S=12):
+        return rewards.graded_reward(["p"], [text], target_chars=[L], target_digit_sum=[S])[0]
+
+    assert [rewards.digits_needed(s) for s in (0, 1, 9, 10, 18, 19)] == [0, 1, 1, 2, 2, 3]
+    assert counted("abcdefgh39") == 1.0
+    assert counted("abcdefghi9") == pytest.approx(0.5 + 0.5 / 4 / 2)       # one digit short of 2
+    assert counted("abcdefgh45") == pytest.approx(0.5 + 0.5 / 4)           # two digits, sum 9
+    assert counted("abcdefghij") == pytest.approx(0.5)                     # no digit: nothing to halve
+    assert counted("abcdefgh9x", S=30) == pytest.approx(0.5 + 0.5 / 22 / 8)  # 3 digits short of 4
+    # where one digit can reach the target, counted is graded, zeros counting as digits
+    for text in ("abcdefghi8", "abcdefgh00", "abcdefgh1", "abcd5efgh3x"):
+        assert counted(text, S=8) == graded(text, S=8)
+    # the order that matters for two-digit targets: two digits near 12 beat the best one digit
+    assert counted("abcdefghi9") < counted("abcdefgh45") < counted("abcdefgh57")
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=st.text(), target_chars=st.integers(1, 200), target_sum=st.integers(0, 300))
+def test_counted_reward_is_one_exactly_when_binary_is_and_never_above_graded(text, target_chars,
+                                                                              target_sum):
+    kw = dict(target_chars=[target_chars], target_digit_sum=[target_sum])
+    b = rewards.binary_reward(["p"], [text], **kw)[0]
+    c = rewards.counted_reward(["p"], [text], **kw)[0]
+    assert 0.0 < c <= rewards.graded_reward(["p"], [text], **kw)[0]
+    assert (c == 1.0) == (b == 1.0)
+
+
+def test_graded_pays_the_best_one_digit_reply_more_than_most_two_digit_replies():
+    """Lesson 7, 6.4: against a two-digit target, graded's digit credit for a 9 beats that of
+    most replies with two digits (all 100 pairs of digits equally likely), and counted's does
+    not beat most of them."""
+    for S in (10, 11, 12):
+        def credit(reward, digits):
+            return reward(["p"], ["x" * (10 - len(digits)) + digits], target_chars=[10],
+                          target_digit_sum=[S])[0]
+        pairs = [f"{a}{b}" for a in range(10) for b in range(10)]
+        for reward, most in ((rewards.graded_reward, True), (rewards.counted_reward, False)):
+            below = sum(credit(reward, p) < credit(reward, "9") for p in pairs)
+            assert (below > len(pairs) / 2) == most, (S, reward.__name__, below)
