@@ -227,6 +227,23 @@ def completions_by_target(runs: list[Path]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def against_preset(runs: list[Path], result: dict) -> str:
+    """Held-out greedy pass rates of ``runs`` (one per seed) minus those of the ablation's
+    full-recipe arm (``result``, a stored result.json) on the same seeds, through
+    ``stats.paired`` (a markdown list: both constraints, then the two-digit targets)."""
+    seeds = [json.loads((run / "config.json").read_text())["seed"] for run in runs]
+    preset = dict(zip(result["seeds"], result["arms"][FULL]["runs"]))
+    if not set(seeds) <= set(preset):
+        raise ValueError(f"the preset's stored runs have seeds {sorted(preset)}, not all of {seeds}")
+    afters = [json.loads((run / "summary.json").read_text())["after"]["greedy"] for run in runs]
+    lines = []
+    for key, what in (("pass_both", "both constraints"), ("pass_both_two_digit", "two-digit targets")):
+        comparison = stats.paired([a[key] for a in afters], [preset[s][key] for s in seeds])
+        values = ", ".join(f"seed {s}: {a[key]:.1%} vs {preset[s][key]:.1%}" for s, a in zip(seeds, afters))
+        lines.append(f"- {what} ({values}): {comparison.verdict('{:+.1%}')}")
+    return "\n".join(lines) + "\n"
+
+
 def template_probe_logs(folder: Path) -> str:
     """What the template probes' training logs say about the two-digit targets: how many
     completions were sampled for them and how many passed, their share of the samples early and

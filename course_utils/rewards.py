@@ -308,7 +308,7 @@ def counted_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -
     with the length credit and digit credit of ``graded_score``, and digits short =
     max(0, digits_needed(S) - n_digits), digits_needed(S) = ceil(S / 9). Why: against S = 10 to
     12 a one-digit reply can never pass (9 is the most one digit adds), yet ``graded_score``
-    pays "9" more digit credit than most pairs of digits (against S = 10, half of it), so a
+    pays "9" more digit credit than most pairs of digits (against S = 10 a credit of 1/2), so a
     policy that writes one digit into a template keeps its template on every target. Halved
     for the missing digit, "9" earns 1/4 against S = 10, while any two digits within one unit
     of 10 earn at least 1/2: the credit points towards writing the second digit, which the base

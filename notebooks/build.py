@@ -19,6 +19,7 @@ Placeholders filled here, so the repository URL is written in exactly one place
 
 from __future__ import annotations
 
+import json
 import re
 import sys
 from pathlib import Path
@@ -216,6 +217,8 @@ def render(source: Path, learner: bool) -> dict[str, str]:
                              ablation.template_probe_logs(RESULTS / "counted-probes"))
         text = fill_markdown(text, "COUNTED_BY_TARGET",
                              ablation.completions_by_target(counted_kl_runs()))
+        stored = json.loads((RESULTS / "ablation" / "result.json").read_text())
+        text = fill_markdown(text, "COUNTED_VS_PRESET", ablation.against_preset(counted_kl_runs(), stored))
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))

@@ -188,3 +188,33 @@ def test_graded_pays_the_best_one_digit_reply_more_than_most_two_digit_replies()
         for reward, most in ((rewards.graded_reward, True), (rewards.counted_reward, False)):
             below = sum(credit(reward, p) < credit(reward, "9") for p in pairs)
             assert (below > len(pairs) / 2) == most, (S, reward.__name__, below)
+
+
+@settings(max_examples=200, deadline=None)
+@given(target_sum=st.integers(0, 60), padding=st.integers(0, 40), seed=st.integers(0, 10**6))
+def test_every_partial_credit_is_one_on_passing_texts(target_sum, padding, seed):
+    """The other direction of 'exactly 1 when binary is 1': texts built to pass (digits adding
+    up to S, shuffled among letters) score 1 under graded and counted."""
+    import random
+    rng = random.Random(seed)
+    digits = []
+    while sum(digits) < target_sum:
+        digits.append(rng.randint(1, min(9, target_sum - sum(digits))))
+    chars = [str(d) for d in digits] + [rng.choice("abc xyz") for _ in range(padding)]
+    rng.shuffle(chars)
+    text = "q" + "".join(chars) + "q"   # no surrounding whitespace to strip
+    kw = dict(target_chars=[len(text)], target_digit_sum=[target_sum])
+    assert rewards.binary_reward(["p"], [text], **kw) == [1.0]
+    assert rewards.graded_reward(["p"], [text], **kw) == [1.0]
+    assert rewards.counted_reward(["p"], [text], **kw) == [1.0]
+
+
+def test_counted_pays_any_two_digits_near_ten_at_least_twice_a_lone_nine():
+    """The counted_score docstring: against S = 10, '9' earns a digit credit of 1/4, any two
+    digits within one unit of 10 at least 1/2."""
+    def digit_credit(digits):
+        text = "x" * (10 - len(digits)) + digits
+        return 2 * (rewards.counted_reward(["p"], [text], target_chars=[10], target_digit_sum=[10])[0] - 0.5)
+    assert digit_credit("9") == pytest.approx(0.25)
+    near = [f"{a}{b}" for a in range(10) for b in range(10) if abs(a + b - 10) <= 1]
+    assert near and all(digit_credit(p) >= 0.5 - 1e-12 for p in near)

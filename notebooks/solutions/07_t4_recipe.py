@@ -650,14 +650,15 @@ for key, value in mine.items():
 #
 # **A partial credit that counts digits, and a KL term.** The logs name the barrier, and the
 # graded credit is part of it: against a two-digit target the best one-digit reply (a 9) earns
-# more digit credit than most replies with two digits, so nothing pays the policy for writing a
-# second digit until that digit is already right. `reward="counted"`
-# (`rewards.counted_score`) halves the digit credit for each digit a reply is short of the
-# fewest that can reach the target (one digit adds at most 9, so every two-digit target needs
-# two), and is still 1 exactly when the rule passes. The runs below add it to the three levers
-# above (`notebooks/results/counted-probes/`): the first on tuning seed 0 alone, the second
-# also with a k3 KL to the pre-trained model (`kl_coef=0.04`, DeepSeekMath's value) and a longer
-# budget, on the tuning seeds:
+# more digit credit than most pairs of digits, so a second digit pays only where it lands the
+# sum near the target. `reward="counted"` (`rewards.counted_score`) halves the digit credit for
+# each digit a reply is short of the fewest that can reach the target (one digit adds at most
+# 9, so every two-digit target needs at least two), and is still 1 exactly when the rule
+# passes. It pays for writing a second digit, not for a closer sum: a zero counts as a digit.
+# The runs below (`notebooks/results/counted-probes/`) add it to the three levers above, with
+# the adaptive bonus's step and cap raised (the change column lists every setting): the first
+# on tuning seed 0 alone; the others also with a k3 KL to the pre-trained model
+# (`kl_coef=0.04`, DeepSeekMath's value) and more steps, on each tuning seed:
 #
 # | change to the cpu preset | seed | steps | held-out greedy pass (both) | one-digit targets | two-digit targets | length pass | digit-sum pass | distinct completions (of the held-out prompts) | most frequent completion |
 # |---|---|---|---|---|---|---|---|---|---|
@@ -671,13 +672,14 @@ for key, value in mine.items():
 # - `steps150-counted-prioritized-adaptive-kl-seed1`: 1808 sampled completions for two-digit targets, 6 of them passing; the two-digit targets' share of the samples 36% in the first quarter of the run and 56% in the last; entropy in the last quarter 0.84 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.030 (cap 0.3)
 # - `steps150-counted-prioritized-adaptive-kl-seed2`: 1576 sampled completions for two-digit targets, 84 of them passing; the two-digit targets' share of the samples 26% in the first quarter of the run and 41% in the last; entropy in the last quarter 0.54 nats per token (entropy_target 0.5), adaptive entropy weight at most 0.250 (cap 0.3)
 #
-# Without the KL term the counted credit did what it was built for: sampled completions passed
-# two-digit targets, which none of the runs above ever did, and the digit-sum constraint passes
-# on most held-out prompts. But the text drifted away from language (its most frequent
-# completion is in the table) and the length did not settle in its budget, so few prompts pass
-# both. With the KL term the policy kept to English words and, on every tuning seed, passes
-# most one-digit targets; the two-digit ones it passes in part, and on one seed not at all.
-# What each seed writes, per target (greedy, held-out):
+# In the run without the KL term the counted credit did what it was built for: sampled
+# completions passed two-digit targets, which neither template probe's ever did, and the
+# digit-sum constraint passes on most held-out prompts. But the text drifted away from language
+# (its most frequent completion is in the table) and the length did not settle in its steps, so
+# few prompts pass both. In the runs with the KL term (and more steps) the greedy replies kept
+# to English words and, on every tuning seed, pass most one-digit targets; the two-digit ones
+# they pass in part, and on one seed not at all. What each seed writes, per target (greedy,
+# held-out):
 #
 # | target digit sum | seed 0: passed | most frequent completion (its digit sum) | seed 1: passed | most frequent completion (its digit sum) | seed 2: passed | most frequent completion (its digit sum) |
 # |---|---|---|---|---|---|---|
@@ -692,25 +694,33 @@ for key, value in mine.items():
 # | 11 | 10 of 10 | `Continue this text 38 characters` (11) | 0 of 9 | `19 don't need no more explanation` (10) | 0 of 4 | `Continue exactly 640 characters.` (10) |
 # | 12 | 5 of 5 | `Continue this text 48 characters` (12) | 0 of 5 | `19 don't need no more explanation` (10) | 0 of 10 | `Continue exactly 640 characters.` (10) |
 #
-# Every seed wrote a template: one sentence per seed, a different one on each, with a number in
-# a slot (one seed drops its full stop where the number has two digits, which keeps the reply
-# at the target length). For most one-digit targets the number is the target (or the target
-# followed by zeros, whose digits add up to the same). For a two-digit target it is never the
-# target (copying `12` would add up to 3) but a number whose digits add up to one of the
-# two-digit targets, which the base model did not write for any held-out prompt and which no
-# sampled completion of the earlier runs ever turned into a pass: GRPO found it. What no seed
-# found is the skill behind it, writing a number with a given digit sum. Each seed found fewer
-# such numbers than there are two-digit targets, and a number serves only the target its digits
-# add up to, so where a seed writes one number for several targets, at most one of them can
-# pass; on one seed the only such number it found makes the reply one character too long, and
-# no two-digit target passes. Read the rows as tuning evidence: the two changes (the KL term,
-# the longer budget) were made together and chosen while looking at seed 0, every seed here is
-# a tuning seed, and the budget is longer than the main job's 15 minutes. The `cpu` preset
-# keeps its recipe until one is frozen and reported once on fresh seeds, paired against the
-# preset, with each lever removed on its own. The leads the runs point to: exploration that
-# outlasts the first number found (the logs give each seed's entropy late in the run, and how
-# high the adaptive weight climbed), larger groups for the unsolved targets, and a warm start
-# as a labelled comparison (what supervision alone reaches, and what GRPO adds).
+# Every seed wrote a template: one sentence per seed, whatever the snippet, a different one on
+# each, with a number in a slot (one seed drops its full stop where the number has two digits,
+# which keeps the reply at the target length). For most one-digit targets the number is the
+# target (or the target followed by zeros, whose digits add up to the same). For a two-digit
+# target it is never the target (copying `12` would add up to 3) but a number whose digits add
+# up to one of the two-digit targets, and one the base model did not write for any held-out
+# prompt. That much is what one of the preset's seeds in 6.3 reached by accident, a fixed phrase
+# holding such a number. What is new is on seed 0, where the number depends on the target: two
+# numbers, each in the slot for the target its digits add up to. No seed found the skill behind
+# it, writing a number with a given digit sum: in its greedy replies each seed uses fewer such
+# numbers than there are two-digit targets, and a number serves only the target its digits add
+# up to, so where a seed writes one number for several targets, at most one of them can pass;
+# on one seed the only such number makes the reply one character too long, and no two-digit
+# target passes. Against the preset's own runs on the same seeds (6.3's full-recipe row), held
+# out, greedy:
+#
+# - both constraints (seed 0: 89.1% vs 65.6%, seed 1: 71.9% vs 7.8%, seed 2: 73.4% vs 78.1%): per-seed differences [+23.4%, +64.1%, -4.7%], mean +27.6%, 95% t-interval [-58.3%, +113.5%] (2 df), sign-flip p = 0.5 (its smallest possible with 3 seeds: 0.25); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 107.0% at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
+# - two-digit targets (seed 0: 68.2% vs 0.0%, seed 1: 0.0% vs 0.0%, seed 2: 33.3% vs 33.3%): per-seed differences [+68.2%, +0.0%, +0.0%], mean +22.7%, 95% t-interval [-75.1%, +120.5%] (2 df), sign-flip p = 1 (its smallest possible with 1 of 3 seeds differing: 1); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 121.9% at 80% power if the true spread were the observed one, itself a rough estimate from 2 df)
+#
+# Read that as tuning evidence, not as a comparison of levers: the runs differ from the preset
+# in several settings at once and in their number of steps, the changes were chosen while
+# looking at seed 0, and every seed here is a tuning seed. The `cpu` preset keeps its recipe
+# until one is frozen and reported once on fresh seeds, paired against the preset, with each
+# lever removed on its own. The leads the runs point to: exploration that outlasts the first
+# number found (the logs give each seed's entropy late in the run, and how high the adaptive
+# weight climbed), larger groups for the unsolved targets, and a warm start as a labelled
+# comparison (what supervision alone reaches, and what GRPO adds).
 #
 # The next cell re-runs the ablation: shrunk to seconds on the tiny model in smoke mode, and
 # with real weights only if you set `RUN_EXPERIMENTS = True` (it is the main job several times
