@@ -192,6 +192,14 @@ def check_all(completions: Sequence[Any], **kwargs) -> list[RuleCheck]:
     return [check(c, L, S) for c, L, S in zip(completions, chars, sums)]
 
 
+def _scored(score, completions: Sequence[Any], kwargs: dict) -> list[float]:
+    """``score(check(c, L, S), L, S)`` for every completion c, targets taken from kwargs."""
+    completions = _completions(completions)
+    n = len(completions)
+    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
+    return [score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+
+
 def binary_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
     """The recipe's reward: 1.0 if the length and digit-sum constraints both pass, else 0.0."""
     return [float(r.passed) for r in check_all(completions, **kwargs)]
@@ -199,10 +207,7 @@ def binary_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) 
 
 def shaped_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
     """Partial-credit reward in [0, 1] (see ``shaped_score``); 1.0 exactly when both pass."""
-    completions = _completions(completions)
-    n = len(completions)
-    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
-    return [shaped_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+    return _scored(shaped_score, completions, kwargs)
 
 
 def length_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
@@ -240,10 +245,7 @@ def sharp_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> 
 
 def sharp_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
     """Partial credit that pays an exact hit clearly more than a near miss (``sharp_score``)."""
-    completions = _completions(completions)
-    n = len(completions)
-    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
-    return [sharp_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+    return _scored(sharp_score, completions, kwargs)
 
 
 def graded_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
@@ -289,10 +291,7 @@ def _unit_digit_credit(result: RuleCheck, target_digit_sum: int) -> float:
 
 def graded_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
     """Partial credit in whole units of the digit sum, none without a digit (``graded_score``)."""
-    completions = _completions(completions)
-    n = len(completions)
-    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
-    return [graded_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+    return _scored(graded_score, completions, kwargs)
 
 
 def digits_needed(target_digit_sum: int) -> int:
@@ -323,10 +322,7 @@ def counted_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -
 def counted_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
     """``graded_reward`` with the digit credit halved per digit too few to reach the target
     (``counted_score``)."""
-    completions = _completions(completions)
-    n = len(completions)
-    chars, sums = _targets("target_chars", kwargs, n), _targets("target_digit_sum", kwargs, n)
-    return [counted_score(check(c, L, S), L, S) for c, L, S in zip(completions, chars, sums)]
+    return _scored(counted_score, completions, kwargs)
 
 
 REWARDS = {"binary": binary_reward, "shaped": shaped_reward, "sharp": sharp_reward,
