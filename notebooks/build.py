@@ -236,8 +236,26 @@ def render(source: Path, learner: bool) -> dict[str, str]:
 
 README = HERE.parent / "README.md"
 # README sections rendered from stored results: <!-- results: NAME --> ... <!-- end results -->
+def timings_markdown() -> str:
+    """The README commands' measured times (benchmarks/readme_timings.py), one row per record."""
+    path = RESULTS / "readme-timings.jsonl"
+    records = [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    if not records:
+        return "No measurement stored yet: run `python benchmarks/readme_timings.py main` (or `test`)."
+    lines = ["| command | date | commit | machine | wall time, install included | exit status | result |",
+             "|---|---|---|---|---|---|---|"]
+    for r in records:
+        m = r["machine"]
+        units = ", ".join(m["bf16_units"]) or "no bf16 matrix units"
+        minutes, seconds = divmod(round(r["seconds"]), 60)
+        lines.append(f"| {r['command']} | {r['date']} | `{r['commit'][:7]}` | {m['cpu']}, {m['cores']} "
+                     f"cores ({units}) | {minutes} min {seconds} s | {r['returncode']} | {r['result']} |")
+    return "\n".join(lines)
+
+
 README_RESULTS = {"cpu": lambda: re.sub(r"^(#+) ", r"##\1 ", (RESULTS / "cpu" / "report.md").read_text().strip(), flags=re.M),
-                  "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip()}
+                  "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip(),
+                  "timings": timings_markdown}
 
 
 def readme_text() -> str:

@@ -118,3 +118,32 @@ def test_no_control_character_hides_in_a_lesson_or_the_readme():
     bad = [(p.name, n) for p in paths for n, line in enumerate(p.read_text().splitlines(), 1)
            if re.search(r"[\x00-\x08\x0b-\x1f\x7f]", line)]
     assert not bad, f"control characters at (file, line): {bad}"
+
+
+WALL_TIME = re.compile(r"\b\d+ ?(?:h|hours?|min|minutes?) \d+ ?(?:s|seconds?|min|minutes?)\b")
+
+
+def untyped_wall_times(text: str) -> list[str]:
+    """Wall times such as '13 min 8 s' typed into prose: outside rendered results sections
+    (``<!-- results: NAME -->`` ... ``<!-- end results -->``), code fences and inline code."""
+    text = re.sub(r"<!-- results: \w+ -->.*?<!-- end results -->", " ", text, flags=re.S)
+    text = re.sub(r"```.*?```", " ", text, flags=re.S)
+    text = re.sub(r"`[^`]*`", " ", text)
+    return WALL_TIME.findall(text)
+
+
+def test_no_wall_time_is_typed_into_the_readme():
+    """A measured time in the README comes from notebooks/results/readme-timings.jsonl (written
+    by benchmarks/readme_timings.py), rendered into a results section, never typed."""
+    # still typed: the lessons table's estimate of lesson 8's full run (its many shared runs
+    # were never timed as one; issue 25 asks for each lesson's full run to write its time)
+    estimates = ["1 hour 15 minutes"]
+    typed = [t for t in untyped_wall_times((ROOT / "README.md").read_text()) if t not in estimates]
+    assert not typed, (f"README.md: wall times typed into prose: {typed}; measure them with "
+                       f"benchmarks/readme_timings.py and let notebooks/build.py render them")
+
+
+def test_the_wall_time_scanner_finds_typed_times_and_skips_rendered_ones():
+    text = ("took 13 min 8 s and 1 h 15 min, `2 min 3 s` in code\n<!-- results: timings -->\n"
+            "| main | 12 min 40 s |\n<!-- end results -->\nunder 15 minutes")
+    assert untyped_wall_times(text) == ["13 min 8 s", "1 h 15 min"]
