@@ -31,8 +31,15 @@ ROOT = Path(__file__).resolve().parents[1]
 TIMINGS = ROOT / "notebooks" / "results" / "readme-timings.jsonl"
 
 
+def readme_commands(readme: str) -> dict[str, str]:
+    """Each ``<!-- command: NAME -->`` block of the README: NAME -> its bash line (the same
+    parser tests/test_repo.py checks against CI's script)."""
+    blocks = re.findall(r"<!-- command: (\w+) -->\s*```bash\n(.+?)\n```", readme, flags=re.S)
+    return {name: body.strip() for name, body in blocks}
+
+
 def readme_command(name: str, readme: str) -> str:
-    commands = dict(re.findall(r"<!-- command: (\w+) -->\s*```bash\n(.+?)\n```", readme, flags=re.S))
+    commands = readme_commands(readme)
     if name not in commands:
         raise SystemExit(f"error: README.md has no '<!-- command: {name} -->' block; "
                          f"it has {sorted(commands)}")

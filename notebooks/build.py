@@ -215,10 +215,10 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "COUNTED_PROBES", ablation.template_probes(RESULTS / "counted-probes"))
         text = fill_markdown(text, "COUNTED_PROBE_LOGS",
                              ablation.template_probe_logs(RESULTS / "counted-probes"))
-        text = fill_markdown(text, "COUNTED_BY_TARGET",
-                             ablation.completions_by_target(counted_kl_runs()))
+        kl_runs = counted_kl_runs()
+        text = fill_markdown(text, "COUNTED_BY_TARGET", ablation.completions_by_target(kl_runs))
         stored = json.loads((RESULTS / "ablation" / "result.json").read_text())
-        text = fill_markdown(text, "COUNTED_VS_PRESET", ablation.against_preset(counted_kl_runs(), stored))
+        text = fill_markdown(text, "COUNTED_VS_PRESET", ablation.against_preset(kl_runs, stored))
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
@@ -235,7 +235,8 @@ def render(source: Path, learner: bool) -> dict[str, str]:
 
 
 README = HERE.parent / "README.md"
-# README sections rendered from stored results: <!-- results: NAME --> ... <!-- end results -->
+
+
 def timings_markdown() -> str:
     """The README commands' measured times (benchmarks/readme_timings.py), one row per record."""
     path = RESULTS / "readme-timings.jsonl"
@@ -253,6 +254,7 @@ def timings_markdown() -> str:
     return "\n".join(lines)
 
 
+# README sections rendered from stored results: <!-- results: NAME --> ... <!-- end results -->
 README_RESULTS = {"cpu": lambda: re.sub(r"^(#+) ", r"##\1 ", (RESULTS / "cpu" / "report.md").read_text().strip(), flags=re.M),
                   "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip(),
                   "timings": timings_markdown}
