@@ -184,7 +184,7 @@ exercises.check_natural_gradient(natural_gradient)
 # every arm it rarely picks gets a gradient proportional to its tiny probability, so plain ascent
 # crawls. The natural gradient of this bandit works out to $F^{-1}g = (r_k - r_K)_k$, the reward
 # gaps themselves, whatever $\pi$ is (a test in `tests/test_trust.py` checks the identity). The
-# cell starts five seeds on a near-deterministic policy that favours one of the two worst arms,
+# cell starts several seeds on a near-deterministic policy that favours one of the two worst arms,
 # runs both methods with the same learning rate and exact gradients, and counts the steps until
 # the expected reward reaches a threshold.
 
@@ -530,8 +530,8 @@ for arm in list(arms)[1:]:
 # ### Reusing a batch on SmolLM2
 #
 # The same experiment on the pretrained SmolLM2-135M-Instruct, shrunk to what a CPU affords: one
-# batch of the main job's prompts (two prompts, eight completions each) and eight AdamW updates
-# on it at the T4 recipe's learning rate, with the clip and without. After each update the cell measures, on the batch's own tokens, the
+# batch of the main job's prompts (a few prompts, eight completions each) and a few AdamW updates
+# on it (the table's rows) at the T4 recipe's learning rate, with the clip and without. After each update the cell measures, on the batch's own tokens, the
 # clip fraction and the KL from the sampling policy (the k3 estimate, which is unbiased because
 # the tokens were drawn from that policy).
 

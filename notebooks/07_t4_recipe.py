@@ -88,7 +88,7 @@ if GPU and "T4" not in GPU:
 # lower temperature), on one seed, was stopped early, and had sampled no pass by then.
 # If distinct completions collapse or the model's language degrades over a long run,
 # `kl_coef=0.04` (DeepSeekMath's value) is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
-# prompts, fp32, three steps.
+# prompts, fp32, a few steps.
 
 # %%
 RUN_DIR = "runs/t4"
@@ -183,7 +183,7 @@ for name, change in [("8-bit AdamW", dict(optimizer="adamw_8bit")), ("LoRA r=16"
 #   again to continue. A second press stops at once, and the step in flight is redone later.
 # - **Running the cell again** on a finished run returns its summary and changes nothing. A
 #   second copy of the notebook (or a double-clicked cell in another tab) writing to the same
-#   `out_dir` is refused with the id of the process that holds it, so two runs never mix.
+#   `out_dir` is refused with the id of the process that holds it, so runs never mix.
 # - **Starting over** is deliberate: `train.train(cfg, overwrite=True)` deletes this run, and a
 #   new `out_dir` keeps it. Without either, a fresh run (`resume=False`) in a directory that holds a
 #   run is refused.
@@ -253,8 +253,8 @@ if not GPU:
 #
 # The T4 run cannot be executed where this course is built. What was run, for real, is the same
 # loop on the embedded SmolLM2-135M-Instruct on 2 CPU cores (the `cpu` preset: 32-character
-# target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), three
-# times: the main job as it is now (`cpu`), the same job as the course first shipped it, with
+# target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), in
+# these runs: the main job as it is now (`cpu`), the same job as the course first shipped it, with
 # the same shaped reward and a smaller budget (`cpu-shaped`: half the learning rate, a looser
 # token cap, 40 steps), and that first job with the recipe's binary reward
 # (`cpu-binary`). The commands:
@@ -269,7 +269,7 @@ if not GPU:
 # ```
 #
 # Their outputs are saved in `notebooks/results/`; every run is deterministic on a CPU, so the
-# commands reproduce them on the same software versions (the two older runs were made with the
+# commands reproduce them on the same software versions (`cpu-shaped` and `cpu-binary` were made with the
 # previous version of the loop, whose code path is the same with dynamic sampling off; their
 # tables lack the rows added since). The held-out prompts continue
 # snippets that were never trained on; there are few distinct held-out snippets (the tables say
@@ -367,7 +367,7 @@ if not GPU:
 # The `cpu-shaped` run's reward climbed towards its ceiling while its pass rate (both
 # constraints) stayed at zero. Read its completions: the policy found a *template* that copies
 # the target digit from the instruction into a fixed sentence a little shorter than the target.
-# The shaped credit barely penalizes a miss of two characters, and, worse, inside a group the
+# The shaped credit barely penalizes a miss of two characters (the template's), and, worse, inside a group the
 # small difference between the template and an exact hit is drowned by the larger spread of
 # the digit credits, so GRPO's standardized advantages hardly ever favour the exact length.
 # Then the template took over: every member of a group wrote it, the groups' rewards became
@@ -378,8 +378,8 @@ if not GPU:
 #
 # ### 6.1 The signs, read from the files
 #
-# Every number below comes from the two runs' stored `metrics.jsonl` and `summary.json`
-# (`course_utils.ablation.diagnose`):
+# Every number below comes from the stored `metrics.jsonl` and `summary.json` of the `cpu-shaped`
+# and `cpu` runs (`course_utils.ablation.diagnose`):
 #
 # | sign | reward hacking (`cpu-shaped`) | the fixed recipe (`cpu`) |
 # |---|---|---|
@@ -430,8 +430,8 @@ for key, value in mine.items():
 # added to each group's standard deviation to keep it finite (`tests/test_fixes.py` checks the
 # equality with that constant made tiny). With the training constant the two differ slightly
 # (relatively, by about the constant over the group's standard deviation), sampling then
-# amplifies the difference, and the two runs part: compare the
-# first-sampled-pass column of the two dynamic-sampling arms in 6.3. Once passes turn up, what
+# amplifies the difference, and the runs part: compare the
+# first-sampled-pass column of the dynamic-sampling arms in 6.3. Once passes turn up, what
 # the bonus changes depends on the group. In a group of G - 1 *identical* near misses and one
 # pass there are only two values, and standardization gives the pass the same advantage
 # whatever the gap between them: the sharp reward changes nothing there. Where the near
@@ -523,28 +523,28 @@ for key, value in mine.items():
 # ![ablation: training curves, mean over seeds and range](https://raw.githubusercontent.com/policy-gradients-course/policy-gradients-for-llms/main/notebooks/results/ablation/curves.png)
 #
 # Read the per-seed column before the means. Seeds of one arm end in very different places, a
-# template that passes every one-digit target or almost nothing. Compared unpaired, as two
-# clouds of three results, arms that swing that much could hide a gap of tens of points;
+# template that passes every one-digit target or almost nothing. Compared unpaired, as
+# clouds of three results each, arms that swing that much could hide a gap of tens of points;
 # paired, the swing between seeds cancels and what is left is each seed's difference. Even so,
 # three seeds are few: an exact sign-flip test cannot give a p-value below its floor with three
 # seeds (the lines under the table print it), and the t-interval on 2 degrees of freedom is
 # wide, so each "no difference detected" comes with the difference the design could have
 # detected. What the table does say:
 #
-# - **The recipe passes half of the held-out prompts on average, not on every seed.** Two
-#   seeds settle on a template that passes every one-digit target; the third passes few
-#   prompts when its budget ends, though it sampled its first pass earlier than one of the
-#   other two (the first-sampled-pass column): it found passes and did not settle on them.
+# - **The recipe passes half of the held-out prompts on average, not on every seed.** On
+#   two of its three seeds the recipe settles on a template that passes every one-digit target; its weakest seed passes few
+#   prompts when its budget ends, though it sampled its first pass earlier than another seed
+#   did (the first-sampled-pass column): it found passes and did not settle on them.
 #   That spread is the honest size of what 15 minutes on a CPU buy.
 # - **Dynamic sampling, as run here, changed no seed's held-out pass rate.** With it, every
 #   seed ended at exactly the pass rate it reached without it, though not always with the same
 #   policy (the distinct-completions column differs: on at least one seed the two policies
 #   write different sets of completions). Until some group scores
-#   its G completions alike, the two runs are the same run (on one seed that never happened,
+#   its G completions alike, the runs with and without it are the same run (on one seed that never happened,
 #   and the runs are identical to the last step); after that, the extra groups it drew (the
 #   groups-sampled column) did not move the pass rate. The recipe leaves it out because it
 #   showed no gain for its cost, not because three seeds of a capped version show it useless.
-# - **The sharp reward changed two seeds' results, both for the worse.** Added on top of
+# - **The sharp reward made two seeds' results worse and none better.** Added on top of
 #   dynamic sampling, it did no better than dynamic sampling alone on any seed and worse on
 #   two; three seeds cannot call that a difference (its comparison with the dynamic-sampling
 #   arm under the table), and nothing in it argues for the bonus.
@@ -560,13 +560,13 @@ for key, value in mine.items():
 # course's earlier, shorter recipe (the sharp reward) missed were used to probe the levers left
 # out of it: each row is the `cpu` preset with the changes listed (the sharp reward among them),
 # on one seed, most of them stopped by hand once their ending was clear (`notebooks/results/probes/`; the probes ran
-# two at a time on one thread each, and their seconds are not comparable. A different thread
+# side by side on one thread each, and their seconds are not comparable. A different thread
 # count changes floating-point sums in the last digits, and in a *sampled* run that is enough:
-# one flipped token sends the run down another path, so a probe rerun on two threads need not
+# one flipped token sends the run down another path, so a probe rerun on more threads need not
 # end where its row says). "How it ended" is read from the last
 # 5 steps by a fixed rule (`course_utils.ablation.probe_outcome`): *collapsed onto one
-# sentence* when at most a quarter of a batch's completions are distinct and the entropy is at
-# most 0.2 nats; *filling the token cap* when nine in ten completions are cut off at
+# sentence* when at most 25% of a batch's completions are distinct and the entropy is at
+# most 0.2 nats; *filling the token cap* when 90% of completions are cut off at
 # `max_new_tokens`; otherwise *still exploring*.
 #
 # | change to the cpu preset | seed | steps run | sampled pass (both), last 5 steps | length pass (batch trained on), last 5 | entropy, last 5 | distinct completions per batch, last 5 | how it ended | held-out greedy pass (both) |
@@ -579,7 +579,7 @@ for key, value in mine.items():
 # | reward sharp, temperature 0.85, dynamic_sampling True, max_sampling_rounds 2 | 2 | 17 of 56 | 1.2% | 9.4% | 2.84 | 100% | filling the token cap | not evaluated (stopped by hand) |
 # | reward sharp, updates_per_batch 2, clip_eps_high 0.28, dynamic_sampling True, max_sampling_rounds 2 | 1 | 25 of 48 | 0.0% | 31.2% | 0.40 | 39% | still exploring | not evaluated (stopped by hand) |
 #
-# Compare the two runs with temperature 0.7: the same change, two seeds, opposite endings. On
+# Compare the runs with temperature 0.7 and no other lever, on seeds 1 and 2: the same change, opposite endings. On
 # one seed, sharper sampling made the policy commit early to a sentence that ignores the digit
 # target, and a committed policy has nothing left to explore. On the other it made the policy
 # commit to short fragments that the 24-token cap cuts at about 32 characters, with the target

@@ -36,7 +36,8 @@
 #
 # Every experiment is a function in `course_utils/tracks.py` (read it: each is a page). The
 # training runs are the `cpu` preset as it was before lesson 7's fixes (shaped reward, no
-# dynamic sampling), shortened to 12 steps (2 to 4 minutes each on 2 CPU cores),
+# dynamic sampling), shortened to 12 steps (a few minutes each on 2 CPU cores: the main job's
+# stored run took 11 s per step),
 # and are shared between tracks: plain GRPO with seed *s* is the "no entropy bonus", the "no KL"
 # and the "per-prompt groups" arm at once. By default the notebook trains nothing and shows,
 # under each experiment, the numbers and plots of the real run on the embedded
@@ -45,7 +46,7 @@
 # stored results come from
 #
 # ```bash
-# python -m course_utils.tracks all --seeds 0 1 2 --out notebooks/results/tracks   # about 75 minutes on 2 CPU cores
+# python -m course_utils.tracks all --seeds 0 1 2 --out notebooks/results/tracks   # every run, one after another: the course's longest job
 # ```
 #
 # **Held-out prompts.** Every held-out figure below is measured on prompts built from the
@@ -81,8 +82,8 @@ from course_utils.config import smoke_mode
 
 SMOKE = smoke_mode()
 # False: each section shows the stored results rendered under it and trains nothing. True:
-# retrain every track on the real model, with progress bars (about 75 minutes on 2 CPU cores;
-# finished runs in runs/tracks/ are reused). In smoke mode (CI) every track runs, shrunk.
+# retrain every track on the real model, with progress bars (the course's longest job; finished
+# runs in runs/tracks/ are reused). In smoke mode (CI) every track runs, shrunk.
 RUN_EXPERIMENTS = False
 SEEDS = [0] if SMOKE else [0, 1, 2]   # smoke: one seed, the code paths, not the statistics
 OUT = Path("runs/tracks-results")   # the committed results stay untouched in notebooks/results/
@@ -119,7 +120,7 @@ def experiment(track, name: str) -> None:
 experiment(tracks.base_model, "base_model")
 
 # %% [markdown]
-# **Real CPU result** (3 seeds):
+# **Real CPU result** (three seeds):
 #
 # SmolLM2 with raw prompts (3 seeds), held-out before → after:
 #
@@ -186,8 +187,8 @@ experiment(tracks.serving, "serving")
 # prompts went from 14.7 to 30.4 characters and the mean reward fell from 0.607 to 0.564. A
 # policy trained to hit an exact length leans on small logit differences, which rounding every
 # weight row to 256 levels disturbs; measure quality after quantizing, never assume it. (One
-# seed and one set of held-out prompts, so no interval can be given: the size is rough, and a
-# second seed is the first thing to add.) What a T4 run would add:
+# seed and one set of held-out prompts, so no interval can be given: the size is rough, and more
+# seeds are the first thing to add.) What a T4 run would add:
 # bitsandbytes' LLM.int8, which keeps outlier features in fp16 and usually loses less, vLLM's
 # batched serving for throughput, and latency under concurrent requests rather than one at a time.
 
@@ -196,10 +197,10 @@ experiment(tracks.serving, "serving")
 #
 # The seed text adds an entropy bonus whose weight is the inverse of the batch's reward
 # variance: when rewards stop varying (little signal), explore more. It is a course extension,
-# not part of GRPO. Three arms: no bonus; a constant weight of 0.05; and the dynamic weight
+# not part of GRPO. The arms: no bonus; a constant weight of 0.05; and the dynamic weight
 # $10^{-3} / \mathrm{Var}(r)$, capped at 0.2. The constant was sized for a reward variance near
 # 0.02, where the dynamic weight is also 0.05; when the batch's rewards vary less, the dynamic
-# weight is larger, so the two arms can differ in the weight's size as well as in how it moves.
+# weight is larger, so the dynamic and the constant arm can differ in the weight's size as well as in how it moves.
 #
 # **Hypothesis (the seed's).** The dynamic bonus reaches a reward threshold in fewer steps, keeps
 # the entropy higher, and ends with a higher reward than no bonus or a constant one.
@@ -208,7 +209,7 @@ experiment(tracks.serving, "serving")
 experiment(tracks.entropy, "entropy")
 
 # %% [markdown]
-# **Real CPU result** (3 seeds; bands are the range over seeds):
+# **Real CPU result** (three seeds; bands are the range over seeds):
 #
 # Steps until the training reward (3-step average) reaches 0.6, held-out greedy reward after training, token entropy over the last 4 steps (3 seeds):
 #
@@ -272,7 +273,7 @@ experiment(tracks.entropy, "entropy")
 experiment(tracks.kl_schedule, "kl")
 
 # %% [markdown]
-# **Real CPU result** (3 seeds):
+# **Real CPU result** (three seeds):
 #
 # Held-out greedy reward, change in log-likelihood per token of 40 factual sentences against the pre-trained model (0 = knowledge untouched; more negative = more forgotten), and the falsifier: held-out prompts where the arm's greedy completion scores lower than plain GRPO's (3 seeds):
 #
@@ -291,7 +292,7 @@ experiment(tracks.kl_schedule, "kl")
 # **Verdict.** Neither half of the hypothesis could be confirmed, and the reason is instructive.
 # *Knowledge*: plain GRPO itself lost nothing measurable in 12 steps (its log-likelihood of the
 # facts moved by +0.003 ± 0.003 nats per token), so there was nothing for a KL term to
-# preserve; all three arms are within noise of 0, and reward-aware against constant KL shows no
+# preserve; every arm is within noise of 0, and reward-aware against constant KL shows no
 # difference. The probe is sound (it compares against the untouched pre-trained model), the run
 # is too short to damage anything. *Reward*: the mean held-out reward of the reward-aware arm is
 # not lower than plain GRPO's (0.612 against 0.581, no difference
@@ -325,7 +326,7 @@ experiment(tracks.kl_schedule, "kl")
 experiment(tracks.grouping, "grouping")
 
 # %% [markdown]
-# **Real CPU result** (exact part with 20,000 batches; real runs with 3 seeds):
+# **Real CPU result** (exact part with 20,000 batches; real runs with three seeds):
 #
 # **Exact comparison** (20,000 batches of 4 prompts x 8; pass probabilities of the prompts at the start: 0.92, 0.32, 0.13, 0.19):
 #
@@ -407,7 +408,7 @@ experiment(tracks.grouping, "grouping")
 experiment(tracks.retrieval, "retrieval")
 
 # %% [markdown]
-# **Real CPU result** (exact part with 20,000 groups; real runs with 3 seeds):
+# **Real CPU result** (exact part with 20,000 groups; real runs with three seeds):
 #
 # **The decomposition.** On 5 random two-stage problems, the retriever's and the generator's parts of E[R grad log pi(d, y)] equal autograd's grad_phi J and grad_theta J to 3.3e-17 (float64).
 #
@@ -496,7 +497,7 @@ experiment(tracks.retrieval, "retrieval")
 # %% [markdown]
 # ## What the evidence says
 #
-# | track | hypothesis | evidence (CPU; tracks 1 and 3-5 train 12 steps on 3 seeds, track 2 times a trained model and trains nothing, track 6 trains 8 steps on 3 seeds) |
+# | track | hypothesis | evidence (CPU; tracks 1 and 3-5 train 12 steps on three seeds, track 2 times a trained model and trains nothing, track 6 trains 8 steps on three seeds) |
 # |---|---|---|
 # | 1. base model | learns the unstated rule, more slowly | moves towards it (miss 104 to 32 characters); "more slowly" not established |
 # | 2. int8 + KV cache | int8 costs little quality; the cache matters more | the cache matters more (3.2x vs 1.7x on latency); the quality cost was *not* small (miss 14.7 → 30.4 characters) |
@@ -512,7 +513,7 @@ experiment(tracks.retrieval, "retrieval")
 #
 # **Your turn.** Each experiment takes its arms as data: add an arm, add seeds, or lengthen the
 # runs (`tracks.SHORT`), and rerun one track. Results are reused per run directory, so only the
-# new runs cost time. Three arms worth adding:
+# new runs cost time. Arms worth adding:
 #
 # - to track 3, a constant entropy weight equal to the dynamic arm's mean `entropy_weight`,
 #   which separates "dynamic" from "larger";

@@ -254,10 +254,38 @@ def timings_markdown() -> str:
     return "\n".join(lines)
 
 
+def run_time(seconds: float) -> str:
+    """A lesson's full-run time as the lessons table writes it: '14 s', '3 min 5 s'."""
+    minutes, s = divmod(round(seconds), 60)
+    return f"{s} s" if not minutes else f"{minutes} min {s} s"
+
+
+def lesson_run_times(text: str) -> str:
+    """Each lesson's cell <!-- run time: N -->...<!-- end run time --> from the records of
+    benchmarks/lesson_timings.py in notebooks/results/lesson-timings.json."""
+    path = RESULTS / "lesson-timings.json"
+    records = json.loads(path.read_text()) if path.exists() else {}
+
+    def cell(m: re.Match) -> str:
+        r = records.get(m.group(1))
+        shown = run_time(r["seconds"]) if r else "not timed yet"
+        return f"<!-- run time: {m.group(1)} -->{shown}<!-- end run time -->"
+
+    return re.sub(r"<!-- run time: (\d+) -->.*?<!-- end run time -->", cell, text)
+
+
+def trl_markdown() -> str:
+    """The TRL comparison of benchmarks/RESULTS.md (the output of benchmarks/grpo_vs_trl.py,
+    pasted whole there), with its headings moved below the README's section."""
+    results = (HERE.parent / "benchmarks" / "RESULTS.md").read_text()
+    start = results.index("# course_utils vs TRL")
+    return re.sub(r"^(#+) ", r"###\1 ", results[start:].strip(), flags=re.M)
+
+
 # README sections rendered from stored results: <!-- results: NAME --> ... <!-- end results -->
 README_RESULTS = {"cpu": lambda: re.sub(r"^(#+) ", r"##\1 ", (RESULTS / "cpu" / "report.md").read_text().strip(), flags=re.M),
                   "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip(),
-                  "timings": timings_markdown}
+                  "timings": timings_markdown, "trl": trl_markdown}
 
 
 def readme_text() -> str:
@@ -268,7 +296,7 @@ def readme_text() -> str:
         if not pattern.search(text):
             raise ValueError(f"README.md has no '<!-- results: {name} -->' section")
         text = pattern.sub(lambda m: m.group(1) + render_section() + "\n" + m.group(3), text)
-    return text
+    return lesson_run_times(text)
 
 
 def targets() -> dict[Path, str]:

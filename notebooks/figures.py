@@ -34,6 +34,12 @@ def _mean_std(values: list[float], fmt: str) -> str:
     return f"{statistics.mean(values):{fmt}} ± {statistics.stdev(values):{fmt.lstrip('+')}}"
 
 
+def _word(n: int) -> str:
+    """A count as the prose spells it: 'three' (numerals above twelve)."""
+    words = "zero one two three four five six seven eight nine ten eleven twelve".split()
+    return words[n] if 0 <= n < len(words) else f"{n}"
+
+
 def _seeds(values: list, fmt: str = "") -> str:
     """'11, 6 and 10' (None for 'never')."""
     words = ["never" if v is None else f"{v:{fmt}}" for v in values]
@@ -120,8 +126,18 @@ def track_figures() -> dict[str, str]:
     from course_utils.config import load_config
     from course_utils.tracks import SHORT
 
+    # the tracks' training runs are shared, so every track ran on the same seeds (the base-model
+    # track's count is in its report: "SmolLM2 with raw prompts (3 seeds)")
+    seed_counts = {len(runs) for result in (entropy["final_reward"], kl_reward, g_final,
+                                            _json("tracks/retrieval/result.json")["final_reward"])
+                   for runs in result.values()}
+    seed_counts.add(int(re.search(r"\((\d+) seeds\)", (RESULTS / base).read_text()).group(1)))
+    if len(seed_counts) != 1:
+        raise ValueError(f"the stored tracks ran on different numbers of seeds: {seed_counts}")
+
     return {
         "tracks.steps": f"{load_config('cpu', **SHORT).total_steps}",
+        "tracks.seeds": _word(seed_counts.pop()),
         "t4.steps": f"{Config.from_dict(PRESETS['t4']).total_steps}",
         "gpt2.steps": f"{Config.from_dict(PRESETS['gpt2-rtx4070']).total_steps}",
         # 1. base model
@@ -213,16 +229,67 @@ def retrieval_figures() -> dict[str, str]:
 
 
 def cpu_run_figures() -> dict[str, str]:
-    """Lesson 7, sections 5 and 6: the stored CPU runs' settings."""
-    from course_utils.config import Config
+    """Lesson 7, sections 5 and 6: the stored CPU runs' settings, the ablation's counts."""
+    from course_utils.ablation import FULL, diagnose
+    from course_utils.config import PRESETS, Config
 
     shaped = _json("cpu-shaped/config.json")
     known = {k: v for k, v in shaped.items() if k in Config.field_names()}
     ablation = _json("ablation/result.json")
     first = [r["first_pass_step"] for arm in ablation["arms"].values() for r in arm["runs"]]
+    main_run = _json("cpu/summary.json")
+    cpu = Config.from_dict(PRESETS["cpu"])
+    # per arm, each seed's held-out pass rate (both constraints)
+    passed = {name: [r["pass_both"] for r in arm["runs"]] for name, arm in ablation["arms"].items()}
+    ds, sharp = passed["with dynamic sampling"], passed["with dynamic sampling and the sharp reward"]
+    recipe = ablation["arms"][FULL]["runs"]
+    # the cpu-shaped run's template (its most frequent held-out completion) against the target
+    template = diagnose(RESULTS / "cpu-shaped")
     return {"cpu_shaped.steps": f"{Config.from_dict(known).total_steps}",
+            "cpu_shaped.template_miss": _word(abs(template["top_chars"] - shaped["target_chars"])),
+            # the stored main-job run's training time per step (its summary.json)
+            "cpu.seconds_per_step": f"{main_run['seconds'] / main_run['steps']:.0f}",
+            "cpu.prompts_per_step": _word(cpu.prompts_per_step),
+            "cpu.group_size": _word(cpu.group_size),
             # the earliest step at which any ablation run sampled a pass (None: never)
-            "ablation.earliest_first_pass": f"{min(s for s in first if s is not None)}"}
+            "ablation.earliest_first_pass": f"{min(s for s in first if s is not None)}",
+            "ablation.seeds": _word(len(ablation["seeds"])),
+            "ablation.seed_list": _seeds(ablation["seeds"]),
+            "ablation.df": f"{len(ablation['seeds']) - 1}",      # of a paired t-interval
+            # the recipe's seeds that settled on a template passing every one-digit target
+            "ablation.template_seeds": _word(sum(r["pass_both_one_digit"] == 1.0 for r in recipe)),
+            # the seeds on which the sharp reward ended below dynamic sampling alone
+            "ablation.sharp_worse": _word(sum(s < d for s, d in zip(sharp, ds))),
+            "ablation.max_sampling_rounds":
+                _word(ablation["arms"]["with dynamic sampling"]["overrides"]["max_sampling_rounds"]),
+            **probe_figures(passed[FULL])}
+
+
+def probe_figures(recipe_passed: list[float]) -> dict[str, str]:
+    """Lesson 7, section 6.3: the single-seed probes of other levers and the rule that names
+    how each ended (``course_utils.ablation.probe_outcome``)."""
+    import inspect
+
+    from course_utils import ablation
+
+    folder = RESULTS / "probes"
+    # the probes whose only lever is temperature 0.7 (on the course's earlier recipe)
+    temperature = {int(m.group(1)): folder / m.group(0) for p in sorted(folder.iterdir())
+                   if (m := re.fullmatch(r"temperature-0\.7-seed(\d+)", p.name))}
+    filling = [run for run in temperature.values()
+               if ablation.probe_outcome(ablation.records(run)) == "filling the token cap"]
+    if len(filling) != 1:
+        raise ValueError(f"lesson 7 describes one temperature-0.7 probe filling the token cap, found {filling}")
+    noise = json.loads((filling[0] / "summary.json").read_text())["after"]["greedy"]["pass_both"]
+    clip_higher = json.loads((folder / "two-updates-clip-higher-seed1" / "config.json").read_text())
+    return {"probes.temperature_seeds": _seeds(sorted(temperature)),
+            # the recipe's seeds that the cap-filling probe passes more held-out prompts than
+            "probes.noise_above_recipe": _word(sum(noise > f for f in recipe_passed)),
+            "probes.clip_higher_updates": _word(clip_higher["updates_per_batch"]),
+            "probes.window": f"{inspect.signature(ablation.tail_mean).parameters['n'].default}",
+            "probes.collapsed_distinct": f"{ablation.COLLAPSED['max_distinct_frac']:.0%}",
+            "probes.collapsed_entropy": f"{ablation.COLLAPSED['max_entropy']}",
+            "probes.cap_share": f"{ablation.CAP_FILLING['min_truncated_frac']:.0%}"}
 
 
 def data_figures() -> dict[str, str]:

@@ -2,7 +2,12 @@
 process or under ``accelerate launch`` with 2 CPU processes (gloo). The rollouts are fixed: every
 process samples the *whole* global batch with the same seed and keeps its own rows, so both runs
 train on identical completions and only the training path differs (local groups, gathered
-rewards, global loss normalizers, the gradient all-reduce). Writes the updated parameters."""
+rewards, global loss normalizers, the gradient all-reduce). Writes the updated parameters.
+
+Variant "inverse_variance" (the default): one step with the seed's variance-scaled entropy bonus.
+Variant "adaptive": two steps with the adaptive entropy weight (losses.AdaptiveEntropy), whose
+target is set above any entropy so the second step trains with a weight the first one set from
+the whole batch's entropy: every process must read the same entropy and move alike."""
 import json
 import sys
 
@@ -14,10 +19,15 @@ from course_utils.data import Prompt
 from course_utils.rollout import Rollout, rollout as real_rollout
 
 
-def main(out: str) -> None:
+ENTROPY = {"inverse_variance": dict(entropy_bonus="inverse_variance", entropy_coef=1e-3,
+                                   entropy_weight_max=10.0),
+           "adaptive": dict(entropy_bonus="adaptive", entropy_coef=1e-2, entropy_target=20.0,
+                            entropy_weight_max=10.0)}
+
+
+def main(out: str, variant: str = "inverse_variance") -> None:
     cfg = load_config("smoke", prompts_per_step=4, group_size=4, grad_accum=1, loss_type="dapo",
-                      entropy_bonus="inverse_variance", entropy_coef=1e-3, entropy_weight_max=10.0,
-                      max_new_tokens=10)
+                      max_new_tokens=10, **ENTROPY[variant])
     policy = train.setup(cfg)
     acc = policy.accelerator
     prompts = [Prompt(text=t, snippet=t, target_chars=20 + 4 * i, target_digit_sum=3 + i)
@@ -37,13 +47,16 @@ def main(out: str) -> None:
 
     train.rollout = fixed_rollout
     before = {n: p.detach().clone() for n, p in policy.model.named_parameters()}
-    metrics = train.grpo_step(policy, prompts)
+    for _ in range(2 if variant == "adaptive" else 1):
+        metrics = train.grpo_step(policy, prompts)
     if acc.is_main_process:
         update = {n: (p.detach() - before[n]) for n, p in policy.model.named_parameters()}
         torch.save(update, out)
         keep = ("reward_mean", "adv_std", "entropy_weight", "loss", "grad_norm", "zero_std_frac")
-        print(json.dumps({"processes": acc.num_processes, **{k: metrics[k] for k in keep}}))
+        control = policy.entropy_control.state_dict() if policy.entropy_control else {}
+        print(json.dumps({"processes": acc.num_processes, **{k: metrics[k] for k in keep},
+                          **{f"control_{k}": v for k, v in control.items()}}))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(*sys.argv[1:])

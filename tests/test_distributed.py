@@ -8,26 +8,31 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 SCRIPT = Path(__file__).with_name("distributed_step.py")
 
 
-def _run(command, out, env=None):
-    proc = subprocess.run(command + [str(SCRIPT), str(out)], capture_output=True, text=True,
+def _run(command, out, variant, env=None):
+    proc = subprocess.run(command + [str(SCRIPT), str(out), variant], capture_output=True, text=True,
                           timeout=600, env={**os.environ, **(env or {})})
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def test_two_processes_make_the_same_update_as_one(tmp_path):
-    one = _run([sys.executable], tmp_path / "one.pt")
+@pytest.mark.parametrize("variant", ["inverse_variance", "adaptive"])
+def test_two_processes_make_the_same_update_as_one(tmp_path, variant):
+    one = _run([sys.executable], tmp_path / "one.pt", variant)
     launcher = shutil.which("accelerate", path=str(Path(sys.executable).parent)) or "accelerate"
     two = _run([launcher, "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
-                "--mixed_precision", "no", "--dynamo_backend", "no"], tmp_path / "two.pt",
+                "--mixed_precision", "no", "--dynamo_backend", "no"], tmp_path / "two.pt", variant,
                env={"ACCELERATE_USE_CPU": "1", "OMP_NUM_THREADS": "1"})
     assert (one["processes"], two["processes"]) == (1, 2)
-    for key in ("reward_mean", "adv_std", "entropy_weight", "loss", "grad_norm"):
+    if variant == "adaptive":   # the second step trained with the weight the first one set
+        assert one["entropy_weight"] > 0 and one["control_coef"] > one["entropy_weight"]
+    controls = [k for k in one if k.startswith("control_")]
+    for key in ("reward_mean", "adv_std", "entropy_weight", "loss", "grad_norm", *controls):
         assert abs(one[key] - two[key]) <= 1e-5 * max(1.0, abs(one[key])), key
     a, b = torch.load(tmp_path / "one.pt"), torch.load(tmp_path / "two.pt")
     assert a.keys() == b.keys()

@@ -1,7 +1,8 @@
 """Every figure in a lesson's prose comes from somewhere: a stored result file or the library's
 arithmetic, filled in by ``notebooks/build.py`` from ``{{fig:NAME}}`` (``notebooks/figures.py``),
-or a cell's printed output. A number typed into the prose is a figure that can go stale, so this
-test fails on one, unless it is a constant of the setup listed below with its reason."""
+or a cell's printed output. A number typed into the prose, in digits or as a count spelled out
+("three seeds"), is a figure that can go stale, so this test fails on one, unless it is a constant
+of the setup listed below with its reason; a wall time typed into a lesson or the README too."""
 import re
 import sys
 from pathlib import Path
@@ -80,6 +81,57 @@ def typed_figures(path: Path) -> list[tuple[int, str]]:
     return found
 
 
+# A count spelled as a word is a figure too: "the third seed", "first ten steps", "two runs". A
+# number word counts only when one of the course's countable nouns follows it, directly or
+# after at most two words ("two held-out prompts"); a hyphenated compound ("two-digit target")
+# is an adjective, not a count. A phrase may run on to the next line of the source.
+CARDINALS = ("two|three|four|five|six|seven|eight|nine|ten|eleven|twelve|thirteen|fourteen|fifteen|"
+             "sixteen|seventeen|eighteen|nineteen|twenty|thirty|forty|fifty|sixty|seventy|eighty|"
+             "ninety|hundred")
+ORDINALS = "second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth"
+NOUNS = ("steps?|seeds?|runs?|prompts?|completions?|groups?|tokens?|characters?|digits?|targets?|"
+         "epochs?|updates?|samples?|rounds?|arms?|snippets?|minutes?|hours?|seconds?|times?|"
+         "pass(?:es)?|documents?|sentences?|batch(?:es)?|probes?|results?")
+NUMBER_WORD = re.compile(
+    rf"\b(?:(?:first|last)\s+(?:{CARDINALS}|\d+)"     # "first ten", "last 5"
+    rf"|(?:{CARDINALS})(?:[- ](?:{CARDINALS}))?"        # "two", "twenty-four"
+    rf"|{ORDINALS})"                                    # "third"
+    rf"(?:\s+[\w'-]+){{0,2}}?\s+(?:{NOUNS})\b",          # ... then the counted noun
+    re.I)
+
+# Counts spelled out that are constants of the exposition, by lesson (the phrase as the scanner
+# reports it, in lower case): a worked example's size, a position, a fact of a tokenizer.
+WORDS_SETUP = {
+    "02_reinforce": {"hundred tokens"},                     # "a few hundred tokens": a scale
+    "04_trust_regions": {"three tokens",                    # the enumerable sequence policy's length
+                         "two worst arms",                  # the bandit's reward vector, arms 3 and 4
+                         "two natural steps",               # the steps in theta and in phi
+                         "two step"},                       # "two step sizes": the cell's linear/cubic demo
+    "05_grpo": {"four tokens",                              # the worked KL example's p and q
+                "two completions"},                         # the length-bias example's short and long one
+    "06_grpo_by_hand": {"two end tokens",                   # Qwen2.5-Instruct's tokenizer
+                        "two runs"},                        # your step's run and the library's
+    "07_t4_recipe": {"second digit",                        # a digit position
+                     "two digits"},                         # "the number has two digits": a two-digit number
+    "08_learner_tracks": {"four prompts"},                  # the exact grouping problem's 4 prompts
+}
+
+
+def typed_number_words(path: Path) -> list[tuple[int, str]]:
+    """(line, phrase) of every count spelled as a word in a lesson's prose."""
+    lines = {}
+    for number, line in prose_lines(path):
+        for pattern in NOT_PROSE:
+            line = re.sub(pattern, " ", line)
+        lines[number] = line
+    found = []
+    for number, line in lines.items():
+        joined = line + " " + lines.get(number + 1, "")      # a phrase may cross a line break
+        found += [(number, " ".join(m.group(0).split())) for m in NUMBER_WORD.finditer(joined)
+                  if m.start() < len(line)]
+    return found
+
+
 @pytest.mark.parametrize("lesson", LESSONS, ids=lambda p: p.stem)
 def test_no_figure_is_typed_into_a_lessons_prose(lesson):
     allowed = SETUP.get(lesson.stem, set())
@@ -89,12 +141,39 @@ def test_no_figure_is_typed_into_a_lessons_prose(lesson):
                        f"let a cell print it, or, for a constant of the setup, list it in SETUP")
 
 
+@pytest.mark.parametrize("lesson", LESSONS, ids=lambda p: p.stem)
+def test_no_count_is_spelled_into_a_lessons_prose(lesson):
+    allowed = WORDS_SETUP.get(lesson.stem, set())
+    typed = [(n, w) for n, w in typed_number_words(lesson) if w.lower() not in allowed]
+    assert not typed, (f"{lesson.name}: counts spelled into prose (line, phrase): {typed}. Render "
+                       f"each from a stored result or the config with {{{{fig:NAME}}}}, say it "
+                       f"without the count, or, for a constant of the exposition, list it in WORDS_SETUP")
+
+
+def test_every_allowed_count_still_appears():
+    """An allowlist entry whose phrase has left the lesson would let a later one through unread."""
+    stale = {stem: phrases - {w.lower() for _, w in typed_number_words(ROOT / "notebooks" / "src" / f"{stem}.py")}
+             for stem, phrases in WORDS_SETUP.items()}
+    assert not any(stale.values()), f"WORDS_SETUP phrases no longer in their lesson: {stale}"
+
+
 def test_the_scanner_finds_typed_figures_and_skips_code_math_and_placeholders(tmp_path):
     lesson = tmp_path / "99_x.py"
     lesson.write_text("# %% [markdown]\n# It fell to 0.64 by step 30, 59 higher and 14.7%; "
                       "`lr=3e-5`, $p=0.5$, {{fig:a.b}}, section 6.1, arXiv 2503.14476 in 2025.\n"
                       "# %%\nx = 0.123\n")
     assert [f for _, f in typed_figures(lesson)] == ["0.64", "30", "59", "14.7%"]
+
+
+def test_the_scanner_finds_counts_spelled_as_words_and_skips_adjectives_and_code(tmp_path):
+    lesson = tmp_path / "99_x.py"
+    lesson.write_text("# %% [markdown]\n# Over the first ten steps two held-out prompts and the third\n"
+                      "# seed passed; ninety-nine times, the last 5 steps. A two-digit target, "
+                      "`three seeds`, {{fig:a.b}} seeds, two of them.\n"
+                      "# %%\nx = 'three seeds'\n")
+    assert typed_number_words(lesson) == [(2, "first ten steps"), (2, "two held-out prompts"),
+                                          (2, "third seed"), (3, "ninety-nine times"),
+                                          (3, "last 5 steps")]
 
 
 def test_every_figure_renders_and_every_placeholder_names_one():
@@ -120,30 +199,57 @@ def test_no_control_character_hides_in_a_lesson_or_the_readme():
     assert not bad, f"control characters at (file, line): {bad}"
 
 
-WALL_TIME = re.compile(r"\b\d+ ?(?:h|hours?|min|minutes?) \d+ ?(?:s|seconds?|min|minutes?)\b")
+# A wall time: a number and a unit of time, "62 s", "3 min", "about 75 minutes", "1.3 h", a
+# range ("2 to 4 minutes") or a compound ("13 min 8 s"). "s" alone needs its space ("62 s").
+_NUMBER = r"\d+(?:\.\d+)?"
+_UNIT = r"(?: ?(?:h|hours?|min|minutes?)| (?:s|seconds?))\b"
+_TIME = rf"(?<![\w.]){_NUMBER}(?: ?(?:to|-|–) ?{_NUMBER})?{_UNIT}(?: {_NUMBER}{_UNIT})?"
+WALL_TIME = re.compile(_TIME)
+NOT_A_WALL_TIME = [
+    r"<!-- results: [\w-]+ -->.*?<!-- end results -->",     # rendered from stored results
+    r"<!-- run time: \d+ -->.*?<!-- end run time -->",      # the lessons table, rendered
+    r"```.*?```", r"`[^`]*`",                                # code
+    rf"(?:\b(?:under|within|at most)|≤|<=) (?:about )?{_TIME}",   # a budget or a limit
+    rf"\bwhat {_TIME}\b[^.]{{0,40}}?\bbuys?\b",              # "what 15 minutes on a CPU buy"
+]
 
 
 def untyped_wall_times(text: str) -> list[str]:
-    """Wall times such as '13 min 8 s' typed into prose: outside rendered results sections
-    (``<!-- results: NAME -->`` ... ``<!-- end results -->``), code fences and inline code."""
-    text = re.sub(r"<!-- results: \w+ -->.*?<!-- end results -->", " ", text, flags=re.S)
-    text = re.sub(r"```.*?```", " ", text, flags=re.S)
-    text = re.sub(r"`[^`]*`", " ", text)
+    """Wall times such as '13 min 8 s' or '3 min' typed into prose: outside rendered results
+    sections (``<!-- results: NAME -->`` ... ``<!-- end results -->``) and run-time cells
+    (``<!-- run time: N -->`` ... ``<!-- end run time -->``), code, and budgets or limits
+    ("under 15 minutes", "at most 2 h", "what 15 minutes buy")."""
+    for pattern in NOT_A_WALL_TIME:
+        text = re.sub(pattern, " ", text, flags=re.S)
     return WALL_TIME.findall(text)
 
 
 def test_no_wall_time_is_typed_into_the_readme():
     """A measured time in the README comes from notebooks/results/readme-timings.jsonl (written
-    by benchmarks/readme_timings.py), rendered into a results section, never typed."""
-    # still typed: the lessons table's estimate of lesson 8's full run (its many shared runs
-    # were never timed as one; issue 25 asks for each lesson's full run to write its time)
-    estimates = ["1 hour 15 minutes"]
-    typed = [t for t in untyped_wall_times((ROOT / "README.md").read_text()) if t not in estimates]
+    by benchmarks/readme_timings.py) or, for the lessons table, lesson-timings.json (written by
+    benchmarks/lesson_timings.py), rendered by notebooks/build.py, never typed."""
+    typed = untyped_wall_times((ROOT / "README.md").read_text())
     assert not typed, (f"README.md: wall times typed into prose: {typed}; measure them with "
                        f"benchmarks/readme_timings.py and let notebooks/build.py render them")
+
+
+@pytest.mark.parametrize("lesson", LESSONS, ids=lambda p: p.stem)
+def test_no_wall_time_is_typed_into_a_lessons_prose(lesson):
+    typed = [(n, t) for n, line in prose_lines(lesson)
+             for t in untyped_wall_times(re.sub(r"\{\{[^}]*\}\}", " ", line))]
+    assert not typed, (f"{lesson.name}: wall times typed into prose (line, time): {typed}; render a "
+                       f"stored time with {{{{fig:NAME}}}} (notebooks/figures.py) or let a cell print it")
 
 
 def test_the_wall_time_scanner_finds_typed_times_and_skips_rendered_ones():
     text = ("took 13 min 8 s and 1 h 15 min, `2 min 3 s` in code\n<!-- results: timings -->\n"
             "| main | 12 min 40 s |\n<!-- end results -->\nunder 15 minutes")
     assert untyped_wall_times(text) == ["13 min 8 s", "1 h 15 min"]
+
+
+def test_the_wall_time_scanner_finds_single_units_and_skips_budgets_and_rendered_cells():
+    text = ("took 3 min, then 62 s, about 75 minutes, 2 to 4 minutes and 1.3 h; 5 seeds, 35 ms, "
+            "lesson 5's run\n| 4 | <!-- run time: 4 -->3 min 5 s<!-- end run time --> |\n"
+            "under 15 minutes, within 2 hours, at most 10 min, ≤ 30 s, what 15 minutes on a CPU "
+            "buy, `python x.py  # 20 minutes`\n```bash\nsleep 60  # 1 min\n```")
+    assert untyped_wall_times(text) == ["3 min", "62 s", "75 minutes", "2 to 4 minutes", "1.3 h"]

@@ -609,3 +609,20 @@ def test_counted_probe_sentences_hold_for_every_stored_run():
     # one of the preset's seeds in 6.3 passed a two-digit target too (by a fixed phrase)
     preset = read(results / "ablation", "result.json")["arms"][ablation.FULL]["runs"]
     assert any(r["pass_both_two_digit"] > 0 for r in preset)
+
+
+def test_the_cpu_presets_token_cap_has_room_for_the_stored_runs_replies():
+    """config.py's comment on the cpu preset: the stored main-job run's 32-character replies are
+    9 tokens of SmolLM2's tokenizer, and with the end token they fit the 24-token cap."""
+    import json
+    from pathlib import Path
+
+    from course_utils import models
+
+    tokenizer = models.load_tokenizer("smollm2-135m-instruct")
+    stored = Path(__file__).resolve().parents[1] / "notebooks" / "results" / "cpu" / "summary.json"
+    replies = [s["completion"] for s in json.loads(stored.read_text())["after"]["greedy"]["samples"]
+               if s["n_chars"] == 32]
+    lengths = {len(tokenizer(r, add_special_tokens=False)["input_ids"]) for r in replies}
+    assert replies and lengths == {9}
+    assert max(lengths) + 1 <= load_config("cpu").max_new_tokens

@@ -89,6 +89,42 @@ def test_gradient_accumulation_gives_the_full_batch_gradient(loss_type):
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-8)
 
 
+def test_bnpo_through_training_is_trls_mean_of_micro_batch_token_means(monkeypatch):
+    """grpo_step with loss_type 'bnpo' and 2 micro-batches (one prompt each) gives the mean of
+    the two prompts' own token-mean gradients (TRL 1.16's "bnpo"), which differs from the whole
+    batch's token mean ('dapo') when the micro-batches hold different numbers of tokens."""
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5)
+               for t in ("One two three", "Four five six seven eight")]
+    sampler = train.setup(load_config("smoke", max_steps=1))
+    full = train.rollout(sampler.model, sampler.tokenizer, [p.text for p in prompts],
+                         group_size=sampler.cfg.group_size, max_new_tokens=sampler.cfg.max_new_tokens,
+                         eos_ids=sampler.eos_ids, generator=torch.Generator().manual_seed(3))
+    # the random tiny model rarely stops early: cut the second prompt's completions shorter, so
+    # the two micro-batches hold different numbers of tokens
+    G = sampler.cfg.group_size
+    full.completion_mask[G:, 5:] = 0
+    full.logprobs.mul_(full.completion_mask)
+    # every step below trains on these completions: a prompt's rows, whichever batch it is in
+    fixed = lambda model, tokenizer, texts, **kw: full.select_groups([[p.text for p in prompts].index(x) for x in texts])
+    monkeypatch.setattr(train, "rollout", fixed)
+
+    def gradient(loss_type, accum, batch):
+        policy = train.setup(load_config("smoke", grad_accum=accum, loss_type=loss_type,
+                                         max_grad_norm=1e6, max_steps=1))
+        policy.optimizer.step = lambda *a, **k: None   # keep the gradient, skip the update
+        train.grpo_step(policy, batch)
+        return torch.cat([p.grad.flatten() for p in policy.model.parameters()])
+
+    tokens = [int(full.select_groups([g]).completion_mask.sum()) for g in (0, 1)]
+    assert tokens[0] != tokens[1], "the test needs micro-batches of unequal token counts"
+    bnpo = gradient("bnpo", 2, prompts)
+    own = [gradient("bnpo", 1, [p]) for p in prompts]   # one micro-batch: its own token mean
+    assert bnpo.abs().max() > 0
+    assert torch.allclose(bnpo, (own[0] + own[1]) / 2, rtol=1e-4, atol=1e-8)
+    assert torch.allclose(gradient("bnpo", 1, prompts), gradient("dapo", 2, prompts), rtol=1e-4, atol=1e-8)
+    assert not torch.allclose(bnpo, gradient("dapo", 2, prompts), rtol=1e-3, atol=1e-6)
+
+
 def test_a_broken_reward_names_the_completion(monkeypatch):
     monkeypatch.setitem(train.rewards.REWARDS, "shaped", lambda prompts, completions, **kw: [float("nan")] * len(completions))
     p = Prompt(text="x", snippet="x", target_chars=3, target_digit_sum=1)

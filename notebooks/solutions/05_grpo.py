@@ -454,7 +454,7 @@ for m in ("batch_mean", "rloo"):
 # margin, as lesson 3's variance measurements predicted (the cell asserts it). Between the
 # baselined methods, read the lines the cell prints: each compares GRPO with one of the others
 # seed by seed (the runs share seeds, so the comparison is paired: `course_utils.stats`), with
-# a t-interval and an exact sign-flip test. With five seeds only
+# a t-interval and an exact sign-flip test. With this few seeds (the plot's title says how many) only
 # large differences can be detected, so "no difference detected" bounds the effect; it does not
 # show the methods equal. Where GRPO's extra step, the division by the group's std, can matter: it
 # rescales every prompt's advantages to size about 1, so a prompt whose completions differ only

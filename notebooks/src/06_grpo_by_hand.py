@@ -57,8 +57,8 @@ print(f"device: {DEVICE}, smoke: {SMOKE}")
 # The task is the course's: continue a snippet in exactly a target number of characters, with
 # digits that add up to a target the prompt states, judged by `course_utils.rewards` (the
 # shaped reward gives partial credit for near misses). The configuration is the main job's
-# (`--preset cpu`) with two changes that make a handful of steps show something: two prompts per
-# step instead of four, and a larger learning rate.
+# (`--preset cpu`) with two changes that make a handful of steps show something: fewer prompts per
+# step than the preset's {{fig:cpu.prompts_per_step}} (the cell prints how many), and a larger learning rate.
 
 # %%
 if SMOKE:   # a random-weight Qwen2 with SmolLM2's tokenizer; seconds per step
@@ -150,8 +150,8 @@ def completion_logprobs(model, prompt_ids, prompt_mask, completion_ids, completi
 exercises.check_completion_logprobs(completion_logprobs)
 
 # %% [markdown]
-# The checker compared your function with `course_utils.rollout.completion_logprobs` on three
-# batches with left padding at three temperatures, and checked that the gradient reaches every
+# The checker compared your function with `course_utils.rollout.completion_logprobs` on seeded
+# batches with left padding at several temperatures, on Qwen2 and GPT-2 models, and checked that the gradient reaches every
 # weight. The library's version computes the same numbers with two savings: it asks the model
 # for the logits of the completion positions only (`logits_to_keep`), since a prompt position's
 # logits, one number per vocabulary entry, are most of the memory and are never used, and it
@@ -376,7 +376,7 @@ def paired(before, after):
 
 # %% [markdown]
 # The run: your step for a handful of steps from the pretrained weights, on the main job's
-# prompt order. The reward is noisy step to step (two prompts, eight completions each), so the
+# prompt order. The reward is noisy step to step (a few prompts, {{fig:cpu.group_size}} completions each), so the
 # cell also compares the policy before and after on held-out prompts it never trained on, prompt
 # by prompt.
 

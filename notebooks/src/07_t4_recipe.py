@@ -17,7 +17,7 @@
 # - how to survive a Colab disconnect (checkpoints, on Google Drive if you like, and resume);
 # - how to read a run: the curves, and held-out completions before and after;
 # - why a run stops learning (reward hacking, entropy collapse, groups without signal), how to
-#   see it in the metrics, and what an ablation over three seeds can and cannot say about the
+#   see it in the metrics, and what an ablation over {{fig:ablation.seeds}} seeds can and cannot say about the
 #   fixes (section 6).
 #
 # Runtime: *Runtime > Change runtime type > T4 GPU*. On a CPU (and in CI) this notebook runs a
@@ -61,7 +61,7 @@ if GPU and "T4" not in GPU:
 # lower temperature), on one seed, was stopped early, and had sampled no pass by then.
 # If distinct completions collapse or the model's language degrades over a long run,
 # `kl_coef=0.04` (DeepSeekMath's value) is the lever. Without a GPU the same preset runs shrunk: a tiny random model, offline
-# prompts, fp32, three steps.
+# prompts, fp32, a few steps.
 
 # %%
 RUN_DIR = "runs/t4"
@@ -156,7 +156,7 @@ for name, change in [("8-bit AdamW", dict(optimizer="adamw_8bit")), ("LoRA r=16"
 #   again to continue. A second press stops at once, and the step in flight is redone later.
 # - **Running the cell again** on a finished run returns its summary and changes nothing. A
 #   second copy of the notebook (or a double-clicked cell in another tab) writing to the same
-#   `out_dir` is refused with the id of the process that holds it, so two runs never mix.
+#   `out_dir` is refused with the id of the process that holds it, so runs never mix.
 # - **Starting over** is deliberate: `train.train(cfg, overwrite=True)` deletes this run, and a
 #   new `out_dir` keeps it. Without either, a fresh run (`resume=False`) in a directory that holds a
 #   run is refused.
@@ -226,8 +226,8 @@ if not GPU:
 #
 # The T4 run cannot be executed where this course is built. What was run, for real, is the same
 # loop on the embedded SmolLM2-135M-Instruct on 2 CPU cores (the `cpu` preset: 32-character
-# target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), three
-# times: the main job as it is now (`cpu`), the same job as the course first shipped it, with
+# target, digit sums from 3 to 12, 32-token snippets, 4 prompts x 8 completions per step), in
+# these runs: the main job as it is now (`cpu`), the same job as the course first shipped it, with
 # the same shaped reward and a smaller budget (`cpu-shaped`: half the learning rate, a looser
 # token cap, {{fig:cpu_shaped.steps}} steps), and that first job with the recipe's binary reward
 # (`cpu-binary`). The commands:
@@ -242,7 +242,7 @@ if not GPU:
 # ```
 #
 # Their outputs are saved in `notebooks/results/`; every run is deterministic on a CPU, so the
-# commands reproduce them on the same software versions (the two older runs were made with the
+# commands reproduce them on the same software versions (`cpu-shaped` and `cpu-binary` were made with the
 # previous version of the loop, whose code path is the same with dynamic sampling off; their
 # tables lack the rows added since). The held-out prompts continue
 # snippets that were never trained on; there are few distinct held-out snippets (the tables say
@@ -264,7 +264,7 @@ if not GPU:
 # The `cpu-shaped` run's reward climbed towards its ceiling while its pass rate (both
 # constraints) stayed at zero. Read its completions: the policy found a *template* that copies
 # the target digit from the instruction into a fixed sentence a little shorter than the target.
-# The shaped credit barely penalizes a miss of two characters, and, worse, inside a group the
+# The shaped credit barely penalizes a miss of {{fig:cpu_shaped.template_miss}} characters (the template's), and, worse, inside a group the
 # small difference between the template and an exact hit is drowned by the larger spread of
 # the digit credits, so GRPO's standardized advantages hardly ever favour the exact length.
 # Then the template took over: every member of a group wrote it, the groups' rewards became
@@ -275,8 +275,8 @@ if not GPU:
 #
 # ### 6.1 The signs, read from the files
 #
-# Every number below comes from the two runs' stored `metrics.jsonl` and `summary.json`
-# (`course_utils.ablation.diagnose`):
+# Every number below comes from the stored `metrics.jsonl` and `summary.json` of the `cpu-shaped`
+# and `cpu` runs (`course_utils.ablation.diagnose`):
 #
 # {{DIAGNOSIS}}
 #
@@ -318,15 +318,15 @@ for key, value in mine.items():
 # added to each group's standard deviation to keep it finite (`tests/test_fixes.py` checks the
 # equality with that constant made tiny). With the training constant the two differ slightly
 # (relatively, by about the constant over the group's standard deviation), sampling then
-# amplifies the difference, and the two runs part: compare the
-# first-sampled-pass column of the two dynamic-sampling arms in 6.3. Once passes turn up, what
+# amplifies the difference, and the runs part: compare the
+# first-sampled-pass column of the dynamic-sampling arms in 6.3. Once passes turn up, what
 # the bonus changes depends on the group. In a group of G - 1 *identical* near misses and one
 # pass there are only two values, and standardization gives the pass the same advantage
 # whatever the gap between them: the sharp reward changes nothing there. Where the near
 # misses differ among themselves, the bonus makes the pass stand out further from their
 # spread. It was the course's first answer to the near-miss template, and it is *not* in
 # the recipe: in the ablation of 6.3 it did no better than the shaped reward on any seed and
-# worse on two. The
+# worse on {{fig:ablation.sharp_worse}}. The
 # `cpu-shaped` run it was designed against used the same shaped reward as today's recipe; what
 # differs is its budget (half the learning rate, a looser token cap, fewer steps), and with the
 # budget changed the shaped reward's near misses turned into passes. A fix aimed at a cause you guessed is the usual
@@ -348,9 +348,9 @@ for key, value in mine.items():
 # settled on one answer. Until then a run with dynamic sampling is the run without it, step for
 # step (`tests/test_fixes.py` checks this), and after that the extra groups it drew did not
 # change any seed's held-out pass rate. Two caveats before reading that as "dynamic sampling
-# does nothing": the arm was capped at two sampling rounds and a batch still short was padded
+# does nothing": the arm was capped at {{fig:ablation.max_sampling_rounds}} sampling rounds and a batch still short was padded
 # with groups without signal, which is not DAPO's method (DAPO resamples until the batch is
-# full of groups with signal), and three seeds detect only large effects (6.3). Where it should
+# full of groups with signal), and {{fig:ablation.seeds}} seeds detect only large effects (6.3). Where it should
 # earn its cost is a reward that scores whole groups alike from the start, as the binary
 # reward does.
 #
@@ -382,7 +382,7 @@ for key, value in mine.items():
 # ### 6.3 The ablation
 #
 # Each arm is the main job with the levers its name adds, with the same steps and the same
-# held-out prompts, over seeds 0, 1 and 2 (the table lists the seeds each arm has been run with;
+# held-out prompts, over seeds {{fig:ablation.seed_list}} (the table lists the seeds each arm has been run with;
 # an arm with one seed says what can happen, not how often). The arm with both levers is the
 # course's previous recipe, run for the same number of steps. The arms share seeds, so they
 # share prompts, targets and, until they part, samples: each seed's *difference* is what
@@ -396,30 +396,30 @@ for key, value in mine.items():
 # {{ABLATION_RESULTS}}
 #
 # Read the per-seed column before the means. Seeds of one arm end in very different places, a
-# template that passes every one-digit target or almost nothing. Compared unpaired, as two
-# clouds of three results, arms that swing that much could hide a gap of tens of points;
+# template that passes every one-digit target or almost nothing. Compared unpaired, as
+# clouds of {{fig:ablation.seeds}} results each, arms that swing that much could hide a gap of tens of points;
 # paired, the swing between seeds cancels and what is left is each seed's difference. Even so,
-# three seeds are few: an exact sign-flip test cannot give a p-value below its floor with three
-# seeds (the lines under the table print it), and the t-interval on 2 degrees of freedom is
+# {{fig:ablation.seeds}} seeds are few: an exact sign-flip test cannot give a p-value below its floor with {{fig:ablation.seeds}}
+# seeds (the lines under the table print it), and the t-interval on {{fig:ablation.df}} degrees of freedom is
 # wide, so each "no difference detected" comes with the difference the design could have
 # detected. What the table does say:
 #
-# - **The recipe passes half of the held-out prompts on average, not on every seed.** Two
-#   seeds settle on a template that passes every one-digit target; the third passes few
-#   prompts when its budget ends, though it sampled its first pass earlier than one of the
-#   other two (the first-sampled-pass column): it found passes and did not settle on them.
+# - **The recipe passes half of the held-out prompts on average, not on every seed.** On
+#   {{fig:ablation.template_seeds}} of its {{fig:ablation.seeds}} seeds the recipe settles on a template that passes every one-digit target; its weakest seed passes few
+#   prompts when its budget ends, though it sampled its first pass earlier than another seed
+#   did (the first-sampled-pass column): it found passes and did not settle on them.
 #   That spread is the honest size of what 15 minutes on a CPU buy.
 # - **Dynamic sampling, as run here, changed no seed's held-out pass rate.** With it, every
 #   seed ended at exactly the pass rate it reached without it, though not always with the same
 #   policy (the distinct-completions column differs: on at least one seed the two policies
 #   write different sets of completions). Until some group scores
-#   its G completions alike, the two runs are the same run (on one seed that never happened,
+#   its G completions alike, the runs with and without it are the same run (on one seed that never happened,
 #   and the runs are identical to the last step); after that, the extra groups it drew (the
 #   groups-sampled column) did not move the pass rate. The recipe leaves it out because it
-#   showed no gain for its cost, not because three seeds of a capped version show it useless.
-# - **The sharp reward changed two seeds' results, both for the worse.** Added on top of
+#   showed no gain for its cost, not because {{fig:ablation.seeds}} seeds of a capped version show it useless.
+# - **The sharp reward made {{fig:ablation.sharp_worse}} seeds' results worse and none better.** Added on top of
 #   dynamic sampling, it did no better than dynamic sampling alone on any seed and worse on
-#   two; three seeds cannot call that a difference (its comparison with the dynamic-sampling
+#   {{fig:ablation.sharp_worse}}; {{fig:ablation.seeds}} seeds cannot call that a difference (its comparison with the dynamic-sampling
 #   arm under the table), and nothing in it argues for the bonus.
 # - **A two-digit target is met only by accident.** Writing a number whose digits add up to the
 #   target is a skill none of these runs found: every pass of a two-digit target, where there
@@ -433,23 +433,23 @@ for key, value in mine.items():
 # course's earlier, shorter recipe (the sharp reward) missed were used to probe the levers left
 # out of it: each row is the `cpu` preset with the changes listed (the sharp reward among them),
 # on one seed, most of them stopped by hand once their ending was clear (`notebooks/results/probes/`; the probes ran
-# two at a time on one thread each, and their seconds are not comparable. A different thread
+# side by side on one thread each, and their seconds are not comparable. A different thread
 # count changes floating-point sums in the last digits, and in a *sampled* run that is enough:
-# one flipped token sends the run down another path, so a probe rerun on two threads need not
+# one flipped token sends the run down another path, so a probe rerun on more threads need not
 # end where its row says). "How it ended" is read from the last
-# 5 steps by a fixed rule (`course_utils.ablation.probe_outcome`): *collapsed onto one
-# sentence* when at most a quarter of a batch's completions are distinct and the entropy is at
-# most 0.2 nats; *filling the token cap* when nine in ten completions are cut off at
+# {{fig:probes.window}} steps by a fixed rule (`course_utils.ablation.probe_outcome`): *collapsed onto one
+# sentence* when at most {{fig:probes.collapsed_distinct}} of a batch's completions are distinct and the entropy is at
+# most {{fig:probes.collapsed_entropy}} nats; *filling the token cap* when {{fig:probes.cap_share}} of completions are cut off at
 # `max_new_tokens`; otherwise *still exploring*.
 #
 # {{PROBES}}
 #
-# Compare the two runs with temperature 0.7: the same change, two seeds, opposite endings. On
+# Compare the runs with temperature 0.7 and no other lever, on seeds {{fig:probes.temperature_seeds}}: the same change, opposite endings. On
 # one seed, sharper sampling made the policy commit early to a sentence that ignores the digit
 # target, and a committed policy has nothing left to explore. On the other it made the policy
 # commit to short fragments that the 24-token cap cuts at about 32 characters, with the target
-# digit among them: that run passes more held-out prompts than two of the recipe's three seeds
-# in 6.3, and its text is noise. A higher learning rate committed earlier still, to a sentence without the digit; two
+# digit among them: that run passes more held-out prompts than {{fig:probes.noise_above_recipe}} of the recipe's {{fig:ablation.seeds}} seeds
+# in 6.3, and its text is noise. A higher learning rate committed earlier still, to a sentence without the digit; {{fig:probes.clip_higher_updates}}
 # updates per batch with clip-higher was on its way there when it was stopped (its entropy and
 # its share of distinct completions were falling). The KL term and overlong filtering kept the
 # policy exploring, and had found few or no passes when they were stopped. Every lever moves
@@ -468,7 +468,7 @@ for key, value in mine.items():
 # whose digits happen to add up to one of the possible targets, written for every two-digit
 # prompt (the ablation's table says how often). GRPO optimized exactly the reward it was given, and this is
 # what the reward asks for. Nor is the stored run the rule: the ablation's full-recipe row gives
-# all three seeds, and one of them passes few prompts when its budget ends. To get
+# all {{fig:ablation.seeds}} seeds, and one of them passes few prompts when its budget ends. To get
 # continuations that also obey the rule, the reward has to say so: a KL term to the pre-trained
 # model (`kl_coef`), a second reward for staying on topic, or a rule that cannot be met by a
 # fixed sentence. That is the honest summary of reward design: the checker is the

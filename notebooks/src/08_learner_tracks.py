@@ -21,7 +21,8 @@
 #
 # Every experiment is a function in `course_utils/tracks.py` (read it: each is a page). The
 # training runs are the `cpu` preset as it was before lesson 7's fixes (shaped reward, no
-# dynamic sampling), shortened to {{fig:tracks.steps}} steps (2 to 4 minutes each on 2 CPU cores),
+# dynamic sampling), shortened to {{fig:tracks.steps}} steps (a few minutes each on 2 CPU cores: the main job's
+# stored run took {{fig:cpu.seconds_per_step}} s per step),
 # and are shared between tracks: plain GRPO with seed *s* is the "no entropy bonus", the "no KL"
 # and the "per-prompt groups" arm at once. By default the notebook trains nothing and shows,
 # under each experiment, the numbers and plots of the real run on the embedded
@@ -30,7 +31,7 @@
 # stored results come from
 #
 # ```bash
-# python -m course_utils.tracks all --seeds 0 1 2 --out notebooks/results/tracks   # about 75 minutes on 2 CPU cores
+# python -m course_utils.tracks all --seeds 0 1 2 --out notebooks/results/tracks   # every run, one after another: the course's longest job
 # ```
 #
 # **Held-out prompts.** Every held-out figure below is measured on prompts built from the
@@ -38,7 +39,7 @@
 # several drawn digit-sum targets: they test the rule on new targets more than on new text.
 #
 # **Read the results with their scale in mind.** {{fig:tracks.steps}} steps of a 135M model on a
-# CPU are a small experiment: three seeds detect large effects only. Each section says what a T4
+# CPU are a small experiment: {{fig:tracks.seeds}} seeds detect large effects only. Each section says what a T4
 # run (the `t4` preset: Qwen2.5-0.5B, {{fig:t4.steps}} steps) would add.
 
 # %%
@@ -54,8 +55,8 @@ from course_utils.config import smoke_mode
 
 SMOKE = smoke_mode()
 # False: each section shows the stored results rendered under it and trains nothing. True:
-# retrain every track on the real model, with progress bars (about 75 minutes on 2 CPU cores;
-# finished runs in runs/tracks/ are reused). In smoke mode (CI) every track runs, shrunk.
+# retrain every track on the real model, with progress bars (the course's longest job; finished
+# runs in runs/tracks/ are reused). In smoke mode (CI) every track runs, shrunk.
 RUN_EXPERIMENTS = False
 SEEDS = [0] if SMOKE else [0, 1, 2]   # smoke: one seed, the code paths, not the statistics
 OUT = Path("runs/tracks-results")   # the committed results stay untouched in notebooks/results/
@@ -92,7 +93,7 @@ def experiment(track, name: str) -> None:
 experiment(tracks.base_model, "base_model")
 
 # %% [markdown]
-# **Real CPU result** (3 seeds):
+# **Real CPU result** ({{fig:tracks.seeds}} seeds):
 #
 # {{TRACK_RESULTS:base_model}}
 #
@@ -137,8 +138,8 @@ experiment(tracks.serving, "serving")
 # prompts went from {{fig:serving.miss_fp32}} to {{fig:serving.miss_int8}} characters and the mean reward fell from {{fig:serving.reward_fp32}} to {{fig:serving.reward_int8}}. A
 # policy trained to hit an exact length leans on small logit differences, which rounding every
 # weight row to 256 levels disturbs; measure quality after quantizing, never assume it. (One
-# seed and one set of held-out prompts, so no interval can be given: the size is rough, and a
-# second seed is the first thing to add.) What a T4 run would add:
+# seed and one set of held-out prompts, so no interval can be given: the size is rough, and more
+# seeds are the first thing to add.) What a T4 run would add:
 # bitsandbytes' LLM.int8, which keeps outlier features in fp16 and usually loses less, vLLM's
 # batched serving for throughput, and latency under concurrent requests rather than one at a time.
 
@@ -147,10 +148,10 @@ experiment(tracks.serving, "serving")
 #
 # The seed text adds an entropy bonus whose weight is the inverse of the batch's reward
 # variance: when rewards stop varying (little signal), explore more. It is a course extension,
-# not part of GRPO. Three arms: no bonus; a constant weight of 0.05; and the dynamic weight
+# not part of GRPO. The arms: no bonus; a constant weight of 0.05; and the dynamic weight
 # $10^{-3} / \mathrm{Var}(r)$, capped at 0.2. The constant was sized for a reward variance near
 # 0.02, where the dynamic weight is also 0.05; when the batch's rewards vary less, the dynamic
-# weight is larger, so the two arms can differ in the weight's size as well as in how it moves.
+# weight is larger, so the dynamic and the constant arm can differ in the weight's size as well as in how it moves.
 #
 # **Hypothesis (the seed's).** The dynamic bonus reaches a reward threshold in fewer steps, keeps
 # the entropy higher, and ends with a higher reward than no bonus or a constant one.
@@ -159,7 +160,7 @@ experiment(tracks.serving, "serving")
 experiment(tracks.entropy, "entropy")
 
 # %% [markdown]
-# **Real CPU result** (3 seeds; bands are the range over seeds):
+# **Real CPU result** ({{fig:tracks.seeds}} seeds; bands are the range over seeds):
 #
 # {{TRACK_RESULTS:entropy}}
 #
@@ -179,7 +180,7 @@ experiment(tracks.entropy, "entropy")
 # line: the comparison was chosen after the results were seen (the track set out to test the
 # inverse-variance arm, and this is one of its three comparisons; a correction for three would
 # widen the interval), and the t-interval leans on the per-seed differences being roughly
-# normal, which the sign-flip test, with three seeds, cannot confirm. A lead to test on more
+# normal, which the sign-flip test, with {{fig:tracks.seeds}} seeds, cannot confirm. A lead to test on more
 # seeds, not a finding.
 # A T4 run
 # ({{fig:t4.steps}} steps, Qwen2.5-0.5B) would show whether the extra entropy pays off late, when plain
@@ -209,14 +210,14 @@ experiment(tracks.entropy, "entropy")
 experiment(tracks.kl_schedule, "kl")
 
 # %% [markdown]
-# **Real CPU result** (3 seeds):
+# **Real CPU result** ({{fig:tracks.seeds}} seeds):
 #
 # {{TRACK_RESULTS:kl}}
 #
 # **Verdict.** Neither half of the hypothesis could be confirmed, and the reason is instructive.
 # *Knowledge*: plain GRPO itself lost nothing measurable in {{fig:tracks.steps}} steps (its log-likelihood of the
 # facts moved by {{fig:kl.delta_plain}} nats per token), so there was nothing for a KL term to
-# preserve; all three arms are within noise of 0, and reward-aware against constant KL shows no
+# preserve; every arm is within noise of 0, and reward-aware against constant KL shows no
 # difference. The probe is sound (it compares against the untouched pre-trained model), the run
 # is too short to damage anything. *Reward*: the mean held-out reward of the reward-aware arm is
 # not lower than plain GRPO's ({{fig:kl.final_aware}} against {{fig:kl.final_plain}}, no difference
@@ -250,7 +251,7 @@ experiment(tracks.kl_schedule, "kl")
 experiment(tracks.grouping, "grouping")
 
 # %% [markdown]
-# **Real CPU result** (exact part with {{fig:grouping.batches}} batches; real runs with 3 seeds):
+# **Real CPU result** (exact part with {{fig:grouping.batches}} batches; real runs with {{fig:tracks.seeds}} seeds):
 #
 # {{TRACK_RESULTS:grouping}}
 #
@@ -266,7 +267,7 @@ experiment(tracks.grouping, "grouping")
 # is exactly (G-1)/G of the gradient; the tests check the 8/7 rescaling). On the real task the
 # learning curves show **no difference detected**: whole-batch normalization ended at
 # {{fig:grouping.final_batch}}, per-prompt groups at {{fig:grouping.final_group}} (per-prompt
-# minus whole batch, paired by seed: {{fig:grouping.diff}}); a t-test on three seeds would
+# minus whole batch, paired by seed: {{fig:grouping.diff}}); a t-test on {{fig:tracks.seeds}} seeds would
 # detect roughly {{fig:grouping.detectable}}, so smaller effects remain possible. Whole-batch
 # normalization ended higher on {{fig:grouping.seeds_batch_above}} seeds: like the entropy
 # track's constant bonus, a lead for more seeds, not a finding. What a T4 run would add: openwebtext prompts, whose
@@ -314,7 +315,7 @@ experiment(tracks.grouping, "grouping")
 experiment(tracks.retrieval, "retrieval")
 
 # %% [markdown]
-# **Real CPU result** (exact part with {{fig:retrieval.batches}} groups; real runs with 3 seeds):
+# **Real CPU result** (exact part with {{fig:retrieval.batches}} groups; real runs with {{fig:tracks.seeds}} seeds):
 #
 # {{TRACK_RESULTS:retrieval}}
 #
@@ -350,7 +351,7 @@ experiment(tracks.retrieval, "retrieval")
 # %% [markdown]
 # ## What the evidence says
 #
-# | track | hypothesis | evidence (CPU; tracks 1 and 3-5 train {{fig:tracks.steps}} steps on 3 seeds, track 2 times a trained model and trains nothing, track 6 trains {{fig:retrieval.steps}} steps on 3 seeds) |
+# | track | hypothesis | evidence (CPU; tracks 1 and 3-5 train {{fig:tracks.steps}} steps on {{fig:tracks.seeds}} seeds, track 2 times a trained model and trains nothing, track 6 trains {{fig:retrieval.steps}} steps on {{fig:tracks.seeds}} seeds) |
 # |---|---|---|
 # | 1. base model | learns the unstated rule, more slowly | moves towards it (miss {{fig:base.miss_sampled}} characters); "more slowly" not established |
 # | 2. int8 + KV cache | int8 costs little quality; the cache matters more | the cache matters more ({{fig:serving.cache_fp32}} vs {{fig:serving.int8_speedup}} on latency); the quality cost was *not* small (miss {{fig:serving.miss_fp32}} → {{fig:serving.miss_int8}} characters) |
@@ -366,7 +367,7 @@ experiment(tracks.retrieval, "retrieval")
 #
 # **Your turn.** Each experiment takes its arms as data: add an arm, add seeds, or lengthen the
 # runs (`tracks.SHORT`), and rerun one track. Results are reused per run directory, so only the
-# new runs cost time. Three arms worth adding:
+# new runs cost time. Arms worth adding:
 #
 # - to track 3, a constant entropy weight equal to the dynamic arm's mean `entropy_weight`,
 #   which separates "dynamic" from "larger";
