@@ -20,14 +20,14 @@ import argparse
 import datetime
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from readme_timings import machine  # noqa: E402  (the same machine record as the README's table)
+# the same machine record, commit and clone as the README's timing table
+from readme_timings import fresh_clone, head_commit, machine  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMINGS = ROOT / "notebooks" / "results" / "lesson-timings.json"
@@ -57,13 +57,11 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"error: lessons {unknown} are not timed here; choose from {TIMED} "
                          f"(lesson 7's full run needs a T4)")
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], check=True,
-                            capture_output=True, text=True).stdout.strip()
+    commit = head_commit()
     records = json.loads(TIMINGS.read_text()) if TIMINGS.exists() else {}
     os.environ.pop("COURSE_SMOKE", None)   # the full run, whatever the calling shell says
     with tempfile.TemporaryDirectory(prefix="lesson-timing-") as tmp:
-        clone = Path(tmp) / "clone"
-        subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
+        clone = fresh_clone(tmp)
         for lesson in args.lessons:
             (path,) = (clone / "notebooks" / "solutions").glob(f"{lesson:02d}_*.ipynb")
             print(f"[lesson_timings] running {path.name} (full)", flush=True)

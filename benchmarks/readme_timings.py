@@ -57,6 +57,19 @@ def machine() -> dict:
                 bf16_units=sorted(flags & {"amx_bf16", "avx512_bf16"}))
 
 
+def head_commit() -> str:
+    """The commit a fresh clone of this repository checks out (committed work only)."""
+    return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], check=True,
+                          capture_output=True, text=True).stdout.strip()
+
+
+def fresh_clone(folder: str) -> Path:
+    """A clone of this repository's HEAD inside ``folder``: what a newcomer gets."""
+    clone = Path(folder) / "clone"
+    subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
+    return clone
+
+
 def result_of(name: str, clone: Path, output: str) -> str:
     """What the command produced: pytest's last summary line, or the main job's held-out
     greedy pass rates read from the run it wrote."""
@@ -77,11 +90,9 @@ def main() -> None:
     args = parser.parse_args()
     readme = (ROOT / "README.md").read_text()
     command = readme_command(args.command, readme)
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], check=True,
-                            capture_output=True, text=True).stdout.strip()
+    commit = head_commit()
     with tempfile.TemporaryDirectory(prefix="readme-timing-") as tmp:
-        clone = Path(tmp) / "clone"
-        subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
+        clone = fresh_clone(tmp)
         print(f"[readme_timings] running the README's '{args.command}' command in {clone}",
               flush=True)
         start = time.perf_counter()

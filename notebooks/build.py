@@ -237,6 +237,12 @@ def render(source: Path, learner: bool) -> dict[str, str]:
 README = HERE.parent / "README.md"
 
 
+def run_time(seconds: float) -> str:
+    """A measured wall time as the README writes it: '14 s', '3 min 5 s'."""
+    minutes, s = divmod(round(seconds), 60)
+    return f"{s} s" if not minutes else f"{minutes} min {s} s"
+
+
 def timings_markdown() -> str:
     """The README commands' measured times (benchmarks/readme_timings.py), one row per record."""
     path = RESULTS / "readme-timings.jsonl"
@@ -248,16 +254,9 @@ def timings_markdown() -> str:
     for r in records:
         m = r["machine"]
         units = ", ".join(m["bf16_units"]) or "no bf16 matrix units"
-        minutes, seconds = divmod(round(r["seconds"]), 60)
         lines.append(f"| {r['command']} | {r['date']} | `{r['commit'][:7]}` | {m['cpu']}, {m['cores']} "
-                     f"cores ({units}) | {minutes} min {seconds} s | {r['returncode']} | {r['result']} |")
+                     f"cores ({units}) | {run_time(r['seconds'])} | {r['returncode']} | {r['result']} |")
     return "\n".join(lines)
-
-
-def run_time(seconds: float) -> str:
-    """A lesson's full-run time as the lessons table writes it: '14 s', '3 min 5 s'."""
-    minutes, s = divmod(round(seconds), 60)
-    return f"{s} s" if not minutes else f"{minutes} min {s} s"
 
 
 def lesson_run_times(text: str) -> str:
@@ -274,16 +273,21 @@ def lesson_run_times(text: str) -> str:
     return re.sub(r"<!-- run time: (\d+) -->.*?<!-- end run time -->", cell, text)
 
 
+def demoted(markdown: str, levels: int) -> str:
+    """Every heading of a stored report moved ``levels`` down, to sit inside a README section."""
+    return re.sub(r"^(#+) ", lambda m: "#" * levels + m.group(1) + " ", markdown, flags=re.M)
+
+
 def trl_markdown() -> str:
     """The TRL comparison of benchmarks/RESULTS.md (the output of benchmarks/grpo_vs_trl.py,
     pasted whole there), with its headings moved below the README's section."""
     results = (HERE.parent / "benchmarks" / "RESULTS.md").read_text()
     start = results.index("# course_utils vs TRL")
-    return re.sub(r"^(#+) ", r"###\1 ", results[start:].strip(), flags=re.M)
+    return demoted(results[start:].strip(), 3)
 
 
 # README sections rendered from stored results: <!-- results: NAME --> ... <!-- end results -->
-README_RESULTS = {"cpu": lambda: re.sub(r"^(#+) ", r"##\1 ", (RESULTS / "cpu" / "report.md").read_text().strip(), flags=re.M),
+README_RESULTS = {"cpu": lambda: demoted((RESULTS / "cpu" / "report.md").read_text().strip(), 2),
                   "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip(),
                   "timings": timings_markdown, "trl": trl_markdown}
 

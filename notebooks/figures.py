@@ -280,8 +280,8 @@ def probe_figures(recipe_passed: list[float]) -> dict[str, str]:
                if ablation.probe_outcome(ablation.records(run)) == "filling the token cap"]
     if len(filling) != 1:
         raise ValueError(f"lesson 7 describes one temperature-0.7 probe filling the token cap, found {filling}")
-    noise = json.loads((filling[0] / "summary.json").read_text())["after"]["greedy"]["pass_both"]
-    clip_higher = json.loads((folder / "two-updates-clip-higher-seed1" / "config.json").read_text())
+    noise = _json(f"probes/{filling[0].name}/summary.json")["after"]["greedy"]["pass_both"]
+    clip_higher = _json("probes/two-updates-clip-higher-seed1/config.json")
     return {"probes.temperature_seeds": _seeds(sorted(temperature)),
             # the recipe's seeds that the cap-filling probe passes more held-out prompts than
             "probes.noise_above_recipe": _word(sum(noise > f for f in recipe_passed)),
