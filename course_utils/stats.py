@@ -26,6 +26,7 @@ import statistics
 from dataclasses import dataclass
 
 EXACT_UP_TO = 16  # seeds; beyond this the permutation test samples sign patterns
+SIGN_SAMPLES = 200_000  # sign patterns drawn when there are more seeds than EXACT_UP_TO
 
 
 # --- Student's t distribution, from the incomplete beta function ----------------------------
@@ -81,7 +82,7 @@ def t_quantile(p: float, df: int) -> float:
 
 # --- the paired comparison -------------------------------------------------------------------
 
-def sign_flip_p_value(diffs: list[float], seed: int = 0, samples: int = 200_000) -> float:
+def sign_flip_p_value(diffs: list[float], seed: int = 0, samples: int = SIGN_SAMPLES) -> float:
     """Two-sided p-value of the paired permutation test: the share of sign patterns whose mean
     difference is at least as far from 0 as the observed one. Exact for n <= EXACT_UP_TO."""
     n = len(diffs)
@@ -150,9 +151,12 @@ class PairedComparison:
     @property
     def p_floor(self) -> float:
         """The smallest p-value the sign-flip test can give here: 2 ** (1 - m), where m counts
-        the seeds whose difference is not zero (a zero difference has no sign to flip)."""
+        the seeds whose difference is not zero (a zero difference has no sign to flip); with
+        more seeds than EXACT_UP_TO the test samples sign patterns, and its floor is
+        1 / (SIGN_SAMPLES + 1)."""
         m = sum(d != 0 for d in self.diffs)
-        return 2.0 ** (1 - m) if m else 1.0
+        exact = 2.0 ** (1 - m) if m else 1.0
+        return exact if self.n <= EXACT_UP_TO else max(exact, 1.0 / (SIGN_SAMPLES + 1))
 
     def verdict(self, fmt: str = "{:+.3f}") -> str:
         """One line: per-seed differences, mean and interval, p-value, and the verdict, with

@@ -14,7 +14,10 @@ Placeholders filled here, so the repository URL is written in exactly one place
 (``course_utils.GITHUB_REPO``): ``{{COLAB_BADGE}}``, ``{{SETUP}}`` (the Colab install cell's code),
 ``{{SOLUTIONS_NOTE}}``, ``{{CPU_RESULTS}}`` (the saved reports of the real CPU runs in
 ``notebooks/results/``, as markdown with their curves), the other stored results' tables, and
-``{{fig:NAME}}``, a single figure quoted in prose (``notebooks/figures.py``).
+``{{fig:NAME}}``, a single figure quoted in prose (``notebooks/figures.py``). In the README,
+which GitHub shows as written, the same figures sit between ``<!-- fig: NAME -->`` and
+``<!-- end fig -->``, and the stored results between ``<!-- results: NAME -->`` and
+``<!-- end results -->``.
 """
 
 from __future__ import annotations
@@ -292,15 +295,30 @@ README_RESULTS = {"cpu": lambda: demoted((RESULTS / "cpu" / "report.md").read_te
                   "timings": timings_markdown, "trl": trl_markdown}
 
 
+# A figure in the README's prose: <!-- fig: NAME -->VALUE<!-- end fig -->, VALUE rendered from
+# notebooks/figures.py like a lesson's {{fig:NAME}}; GitHub shows only VALUE.
+README_FIGURE = re.compile(r"<!-- fig: ([\w.]+) -->.*?<!-- end fig -->", re.S)
+
+
+def readme_figures(text: str) -> str:
+    """Every <!-- fig: NAME --> cell of the README filled in; an unknown name is an error."""
+    known = figures.figures()
+    unknown = sorted({m.group(1) for m in README_FIGURE.finditer(text)} - set(known))
+    if unknown:
+        raise ValueError(f"README.md: unknown figure(s) {unknown}; add them to notebooks/figures.py")
+    return README_FIGURE.sub(lambda m: f"<!-- fig: {m.group(1)} -->{known[m.group(1)]}<!-- end fig -->", text)
+
+
 def readme_text() -> str:
-    """The README with every results section re-rendered from notebooks/results/."""
+    """The README with every results section, run time and figure re-rendered from
+    notebooks/results/."""
     text = README.read_text()
     for name, render_section in README_RESULTS.items():
         pattern = re.compile(rf"(<!-- results: {name} -->\n)(.*?)(<!-- end results -->)", re.S)
         if not pattern.search(text):
             raise ValueError(f"README.md has no '<!-- results: {name} -->' section")
         text = pattern.sub(lambda m: m.group(1) + render_section() + "\n" + m.group(3), text)
-    return lesson_run_times(text)
+    return readme_figures(lesson_run_times(text))
 
 
 def targets() -> dict[Path, str]:

@@ -251,6 +251,13 @@ def cpu_run_figures() -> dict[str, str]:
             "cpu.seconds_per_step": f"{main_run['seconds'] / main_run['steps']:.0f}",
             "cpu.prompts_per_step": _word(cpu.prompts_per_step),
             "cpu.group_size": _word(cpu.group_size),
+            # the same settings in digits, for the README's "60 GRPO steps of 4 prompts x 8"
+            "cpu.steps": f"{cpu.total_steps}",
+            "cpu.prompts_per_step_n": f"{cpu.prompts_per_step}",
+            "cpu.group_size_n": f"{cpu.group_size}",
+            "cpu.lr": re.sub(r"e-0(\d)", r"e-\1", f"{cpu.lr:g}"),   # 6e-5, as the prose writes it
+            # the recipe's mean held-out pass rate over the ablation's seeds
+            "ablation.recipe_mean": f"{statistics.mean(passed[FULL]):.1%}",
             # the earliest step at which any ablation run sampled a pass (None: never)
             "ablation.earliest_first_pass": f"{min(s for s in first if s is not None)}",
             "ablation.seeds": _word(len(ablation["seeds"])),

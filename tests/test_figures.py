@@ -253,3 +253,86 @@ def test_the_wall_time_scanner_finds_single_units_and_skips_budgets_and_rendered
             "under 15 minutes, within 2 hours, at most 10 min, ≤ 30 s, what 15 minutes on a CPU "
             "buy, `python x.py  # 20 minutes`\n```bash\nsleep 60  # 1 min\n```")
     assert untyped_wall_times(text) == ["3 min", "62 s", "75 minutes", "2 to 4 minutes", "1.3 h"]
+
+
+# --- the README's prose ------------------------------------------------------------------------
+# Rendered parts (stored results, measured run times, <!-- fig: NAME --> figures), code and link
+# targets are not prose; what is left is scanned like a lesson's markdown.
+README_NOT_PROSE = [
+    r"<!-- results: [\w-]+ -->.*?<!-- end results -->",
+    r"<!-- run time: \d+ -->.*?<!-- end run time -->",
+    r"<!-- fig: [\w.]+ -->.*?<!-- end fig -->",
+    r"```.*?```",
+    r"\]\([^)]*\)",                                   # a link's target
+]
+# Constants of the README: versions and platforms, budgets, the presets table's settings (checked
+# against config.py by test_the_readmes_presets_table_matches_the_config), and what a test or a
+# tool is set to.
+README_SETUP = {
+    "3.11", "3.13", "3.14", "5.23", "7.4", "2.13", "2.11", "1.16",   # Python and package versions
+    "14",                                                            # macOS 14, torch's oldest wheel
+    "15", "25",                                                      # the budgets "under 15/25 minutes"
+    "32", "128", "10,240",                                           # the presets table's settings
+    "15%",                                                           # plan.py's memory check tolerance
+}
+README_WORDS_SETUP = {
+    "second run",           # "a second run in the same out_dir is refused": not a count
+    "two steps",            # the CI test of the TRL rewards trains two steps: a test's setting
+}
+
+
+def readme_prose() -> list[tuple[int, str]]:
+    """(line number, text) of the README's prose, rendered parts, code and link targets blanked
+    (newlines kept, so line numbers stay true)."""
+    text = (ROOT / "README.md").read_text()
+    for pattern in README_NOT_PROSE:
+        text = re.sub(pattern, lambda m: re.sub(r"[^\n]", " ", m.group(0)), text, flags=re.S)
+    lines = []
+    for number, line in enumerate(text.splitlines(), 1):
+        for pattern in NOT_PROSE:
+            line = re.sub(pattern, " ", line)
+        lines.append((number, line))
+    return lines
+
+
+def test_no_figure_or_count_is_typed_into_the_readmes_prose():
+    lines = readme_prose()
+    digits = [(n, m.group(0).strip()) for n, line in lines for m in FIGURE.finditer(line)
+              if not (re.fullmatch(r"\d", m.group(1)) and not m.group(2))]
+    words = []
+    for i, (n, line) in enumerate(lines):
+        joined = line + " " + (lines[i + 1][1] if i + 1 < len(lines) else "")
+        words += [(n, " ".join(m.group(0).split())) for m in NUMBER_WORD.finditer(joined) if m.start() < len(line)]
+    typed = ([(n, f) for n, f in digits if f not in README_SETUP]
+             + [(n, w) for n, w in words if w.lower() not in README_WORDS_SETUP])
+    assert not typed, (f"README.md: figures or counts typed into prose (line, figure): {typed}. Write "
+                       f"<!-- fig: NAME --><!-- end fig --> (a figure of notebooks/figures.py) and run "
+                       f"`python notebooks/build.py`, or, for a constant, list it in README_SETUP")
+
+
+def test_every_readme_constant_still_appears():
+    lines = readme_prose()
+    text = " ".join(line for _, line in lines)
+    found = {m.group(0).strip() for m in FIGURE.finditer(text)}
+    words = {" ".join(m.group(0).split()).lower() for m in NUMBER_WORD.finditer(text)}
+    assert not README_SETUP - found and not README_WORDS_SETUP - words, (
+        f"README_SETUP entries no longer in the README: {(README_SETUP - found) | (README_WORDS_SETUP - words)}")
+
+
+def test_the_readme_scanner_skips_rendered_figures():
+    assert re.sub(README_NOT_PROSE[2], " ", "over <!-- fig: ablation.seeds -->three<!-- end fig --> seeds") \
+        == "over   seeds"
+
+
+def test_the_readmes_presets_table_matches_the_config():
+    """The presets table's settings are typed (README_SETUP); this is their source check."""
+    from course_utils.config import PRESETS, Config
+
+    rows = {m.group(1): m.group(0) for m in re.finditer(r"^\| `([\w-]+)` \|.*$", (ROOT / "README.md").read_text(), re.M)}
+    for name in ("cpu", "t4", "gpt2-rtx4070"):
+        cfg = Config.from_dict(PRESETS[name])
+        assert f"{cfg.prompt_tokens} tokens" in rows[name], (name, cfg.prompt_tokens)
+    t4, gpt2 = Config.from_dict(PRESETS["t4"]), Config.from_dict(PRESETS["gpt2-rtx4070"])
+    assert f"micro-batches of {t4.prompts_per_step // t4.grad_accum} prompts x {t4.group_size}" in rows["t4"]
+    assert f"{t4.total_steps * t4.prompts_per_step:,} prompts" in rows["t4"]
+    assert f"{gpt2.target_chars}-character target, batch {gpt2.prompts_per_step}" in rows["gpt2-rtx4070"]

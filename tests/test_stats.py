@@ -94,6 +94,16 @@ def test_the_sign_flip_floor_counts_only_seeds_that_differ():
     assert stats.paired([1.0, 2.0, 3.0], [0.0, 1.0, 1.0]).p_floor == 0.25
 
 
+def test_the_sign_flip_floor_of_a_sampled_test_is_one_over_its_samples_plus_one():
+    """Beyond EXACT_UP_TO seeds the test samples sign patterns: it cannot report a p-value below
+    1 / (samples + 1), however many seeds differ, and the verdict must not claim one."""
+    n = stats.EXACT_UP_TO + 4
+    comparison = stats.paired([float(i + 1) for i in range(n)], [0.0] * n)
+    assert comparison.p_floor == 1.0 / (stats.SIGN_SAMPLES + 1) > 2.0 ** (1 - n)
+    assert comparison.p_value == pytest.approx(comparison.p_floor)
+    assert f"{comparison.p_floor:.3g}" in comparison.verdict()
+
+
 def test_interval_by_hand():
     a, b = [3.0, 5.0, 4.0, 6.0], [1.0, 2.0, 2.0, 3.0]
     cmp = stats.paired(a, b)
