@@ -6,7 +6,9 @@
   tabular sequence policy that writes T tokens from a vocabulary of V, each token's logits
   looked up by (position, previous token).
 * The Fisher information matrix F(theta) = E[grad log pi grad log pi^T], the natural gradient
-  F^-1 grad J, and the step that maximizes the linearized objective under a KL budget (TRPO's).
+  F^-1 grad J, and the step that maximizes the linearized objective under a KL budget (TRPO's),
+  formed explicitly and, as TRPO does at scale, matrix-free: Fisher-vector products by double
+  backward, conjugate gradients and a backtracking line search.
 * Importance weights of whole sequences, against per-token ratios.
 
 Everything here is a reference for the lesson's checkers and cells; each formula is checked
@@ -110,6 +112,72 @@ def kl_step(F: torch.Tensor, g: torch.Tensor, max_kl: float, damping: float = 0.
     gradient, scaled to the edge of the KL ball (TRPO's step, without its line search)."""
     direction = natural_gradient(F, g, damping)
     return direction * torch.sqrt(2 * max_kl / (g @ direction))
+
+
+# ----------------------------------------------------------------------------------------------
+# TRPO's step without forming F: Fisher-vector products, conjugate gradients, a line search
+# ----------------------------------------------------------------------------------------------
+
+
+def fisher_vector_product(log_prob_fn: Callable, theta: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """F v without forming F. F is the Hessian of theta' -> KL(pi_theta || pi_theta') at
+    theta' = theta (section 1), so F v is the derivative along v of that KL's gradient: two
+    backward passes, the first kept differentiable (create_graph). The fixed distribution pi_theta
+    is detached; otherwise the KL is KL(pi || pi) = 0 for every theta'."""
+    log_p = log_prob_fn(theta.detach()).detach()
+    theta_new = theta.detach().clone().requires_grad_(True)
+    (kl_grad,) = torch.autograd.grad(kl(log_p, log_prob_fn(theta_new)), theta_new, create_graph=True)
+    (Fv,) = torch.autograd.grad(kl_grad @ v, theta_new)
+    return Fv
+
+
+def conjugate_gradient(matrix_vector_product: Callable, b: torch.Tensor, iters: int) -> torch.Tensor:
+    """x with A x = b for a symmetric positive-definite A given only as x -> A x: ``iters``
+    conjugate-gradient iterations from x = 0, one product each, stopping early when the residual
+    vanishes. Exact after d iterations in exact arithmetic; far fewer suffice when A's
+    eigenvalues cluster, as a damped Fisher matrix's do (it has rank at most the number of
+    outcomes minus one)."""
+    x = torch.zeros_like(b)
+    r = b.clone()          # the residual b - A x
+    p = r.clone()          # the search direction, conjugate (A-orthogonal) to the earlier ones
+    rr = r @ r
+    for _ in range(iters):
+        if rr <= 1e-30 * (b @ b):
+            break
+        Ap = matrix_vector_product(p)
+        alpha = rr / (p @ Ap)
+        x = x + alpha * p
+        r = r - alpha * Ap
+        rr_new = r @ r
+        p = r + (rr_new / rr) * p
+        rr = rr_new
+    return x
+
+
+def trpo_step(log_prob_fn: Callable, theta: torch.Tensor, surrogate: Callable, max_kl: float,
+              cg_iters: int = 10, damping: float = 1e-3, backtrack: float = 0.5,
+              max_backtracks: int = 10) -> torch.Tensor:
+    """One TRPO update of theta: the new parameters.
+
+    g is the gradient of ``surrogate`` (a differentiable estimate of the objective) at theta;
+    conjugate gradients solve (F + damping I) x = g with Fisher-vector products; the step
+    delta = sqrt(2 max_kl / g.x) x sits on the edge of the quadratic KL ball; the line search
+    tries theta + backtrack**k delta for k = 0, 1, ..., max_backtracks - 1 and keeps the first whose
+    true KL(pi_theta || pi_new) is at most max_kl *and* whose surrogate improved. If none passes,
+    theta is returned unchanged."""
+    theta = theta.detach()
+    start = theta.clone().requires_grad_(True)
+    value = surrogate(start)
+    (g,) = torch.autograd.grad(value, start)
+    x = conjugate_gradient(lambda v: fisher_vector_product(log_prob_fn, theta, v) + damping * v, g, cg_iters)
+    delta = torch.sqrt(2 * max_kl / (g @ x)) * x
+    log_p = log_prob_fn(theta)
+    with torch.no_grad():
+        for k in range(max_backtracks):
+            candidate = theta + backtrack ** k * delta
+            if kl(log_p, log_prob_fn(candidate)) <= max_kl and surrogate(candidate) > value:
+                return candidate
+    return theta.clone()
 
 
 # ----------------------------------------------------------------------------------------------

@@ -163,18 +163,13 @@ assert (F - hessian).abs().max() < 1e-10 and (F - finite).abs().max() < 1e-4
 # does not move the distribution, or more parameters than outcomes) one solves with a small
 # damping, $(F + \lambda I)^{-1} g$, which also keeps the step finite where $F$ is nearly singular.
 #
-# ### Exercise 4.2 — the natural gradient
-#
-# Solve the linear system instead of forming an inverse (`torch.linalg.solve`): it is cheaper and
-# more accurate.
+# With $F$ formed, the natural gradient is one linear system, $(F + \lambda I)\,x = g$, solved
+# rather than inverted (cheaper and more accurate): `trust.natural_gradient`. A language model's
+# $F$ would have one row and one column per parameter, so it is never formed; section 3's
+# exercise computes the same direction without it.
 
 # %%
-def natural_gradient(F, g, damping):
-    """(F + damping * I)^-1 g."""
-    raise NotImplementedError  # your code here
-
-
-exercises.check_natural_gradient(natural_gradient)
+natural_gradient = trust.natural_gradient   # (F + damping I)^-1 g by torch.linalg.solve
 
 # %% [markdown]
 # ### The plateau
@@ -250,6 +245,32 @@ ax.set_title("seed 0: leaving a near-deterministic start"); plt.tight_layout(); 
 assert all(n < v for (n, _), (v, _) in zip(results["natural"], results["vanilla"]))
 
 # %% [markdown]
+# ### The natural gradient as multiplicative weights
+#
+# Why the natural gradient escapes the plateau is clearest in probabilities. Its direction here is
+# the reward gaps, so a step of size $\eta$ adds $\eta\,(r_k - r_K)$ to logit $k$. The shift
+# $-\eta r_K$ is common to every logit (the fixed one included, after renormalizing), so
+#
+# $$\pi'_k = \frac{\pi_k\, e^{\eta r_k}}{\sum_j \pi_j\, e^{\eta r_j}} ,$$
+#
+# the multiplicative-weights (Hedge) update: every arm's probability is multiplied by a factor
+# that depends on its reward only, not on how small the probability already is. Plain ascent
+# instead adds $\eta\,\pi_k (r_k - J)$ to logit $k$, a change proportional to the probability it
+# is trying to raise. (This is Kakade's observation in the paper that introduced the natural
+# policy gradient, 2001: for a softmax policy the natural gradient is the advantage, up to a
+# constant, because the advantage is the best fit of the compatible function approximation, so
+# the step moves each logit by its own action's advantage.) The cell checks the identity on a near-deterministic start.
+
+# %%
+eta = 0.7
+theta = starts[0]
+after_natural = trust.bandit_log_probs(theta + eta * natural(theta)).exp()
+pi = trust.bandit_log_probs(theta).exp()
+hedge = pi * torch.exp(eta * reward) / (pi * torch.exp(eta * reward)).sum()
+print(f"max |natural step - multiplicative weights| = {float((after_natural - hedge).abs().max()):.1e}")
+assert torch.allclose(after_natural, hedge, atol=1e-6)   # the damping 1e-8 moves it a little
+
+# %% [markdown]
 # Plain gradient ascent can match the natural gradient on this start only with a learning rate
 # many times larger. With exact gradients on this bandit such a rate is not punished from a
 # spread-out start (the cell's next line: it reaches the threshold at once), so the lesson is
@@ -312,8 +333,57 @@ assert gaps[0.5][0] / gaps[0.05][0] < 300 < gaps[0.5][1] / gaps[0.05][1]
 # %% [markdown]
 # ## 3. TRPO's step, and where its model breaks
 #
-# Taking the KL bound literally gives TRPO's step: the natural gradient, scaled so that
-# $\tfrac12\delta^\top F\delta = \varepsilon$ exactly,
+# TRPO (Schulman et al., 2015) optimizes the same objective as PPO and GRPO after it: the
+# **per-token surrogate** of section 4, $L(\theta) = \mathbb{E}_{\pi_{\text{old}}}\big[\sum_t
+# \rho_t(\theta)\, A\big]$, whose gradient at $\theta_{\text{old}}$ is the policy gradient $g$.
+# The surrogate agrees with $J$ only to first order around $\theta_{\text{old}}$, and that is
+# why a trust region is needed at all. Kakade and Langford (2002), and TRPO's Theorem 1 for
+# discounted problems, bound the gap:
+#
+# $$J(\pi') \ \ge\ L_{\pi}(\pi') - C\,\max_s \mathrm{KL}\big(\pi(\cdot\mid s)\,\|\,\pi'(\cdot\mid s)\big),
+# \qquad C = \frac{4\gamma\max_{s,a}|A_\pi(s,a)|}{(1-\gamma)^2},$$
+#
+# with $L_\pi$ normalized so that $L_\pi(\pi) = J(\pi)$. Maximizing the right side can only
+# improve $J$, but $C$ is so large that the steps would be tiny. TRPO keeps the shape of the
+# argument and makes it practical: a constraint instead of the penalty, and the mean KL over
+# the sampled states (here: prefixes) instead of the maximum,
+#
+# $$\max_\theta\ L(\theta) \quad\text{subject to}\quad \bar{\mathrm{KL}}(\pi_{\text{old}} \,\|\, \pi_\theta) \le \varepsilon .$$
+#
+# PPO's clip (section 5) is a cheaper stand-in for the same constraint on the same surrogate.
+# The cell measures the gap $J - L$ on the sequence policy along one direction: a tenth of the
+# step leaves about a hundredth of the gap, the second order that the KL term bounds.
+
+# %%
+policy = trust.SequencePolicy(T=3, V=3)
+gen = torch.Generator().manual_seed(4)
+theta_old = 0.5 * torch.randn(policy.n_params, generator=gen)
+direction = torch.randn(policy.n_params, generator=gen)
+seq_reward = torch.rand(3 ** 3, generator=gen)
+p_old, logp_old = policy.log_probs(theta_old).exp(), policy.token_log_probs(theta_old)
+J_old = float(trust.objective(policy.log_probs, theta_old, seq_reward))
+advantage = seq_reward - J_old   # any constant baseline gives the same surrogate up to a constant
+
+
+def surrogate_exact(theta):
+    """L(theta) = J(theta_old) + E_old[sum_t (rho_t - 1) A], every sequence enumerated."""
+    rho = torch.exp(policy.token_log_probs(theta) - logp_old)
+    return J_old + (p_old * ((rho - 1) * advantage[:, None]).sum(-1)).sum()
+
+
+gap = {}
+for size in (0.3, 0.03):
+    theta = theta_old + size * direction / direction.norm()
+    gap[size] = float(trust.objective(policy.log_probs, theta, seq_reward) - surrogate_exact(theta))
+    kl_moved = float(trust.kl(policy.log_probs(theta_old), policy.log_probs(theta)))
+    print(f"step {size}: KL(old || new) = {kl_moved:.2e}, J - L = {gap[size]:+.2e}")
+assert 50 < abs(gap[0.3] / gap[0.03]) < 200   # second order: a tenth of the step, about a hundredth of the gap
+
+# %% [markdown]
+# On a bandit or a sequence policy the KL can be computed exactly; this section uses the
+# exact KL as the "true" one. Taking the KL bound literally with the quadratic model of the KL
+# (section 1) and the linear model of $L$ gives TRPO's step: the natural gradient, scaled so
+# that $\tfrac12\delta^\top F\delta = \varepsilon$ exactly,
 #
 # $$\delta = \sqrt{\frac{2\varepsilon}{g^\top F^{-1} g}}\; F^{-1} g .$$
 #
@@ -338,12 +408,112 @@ for label, theta in (("spread out", torch.tensor([0.3, -0.2, 0.1, 0.4])), ("near
 # KL budget grows, and $\delta$ becomes long: the printed $|\delta|$. Along such a long step the
 # quadratic model no longer describes the KL, and it promises a small KL for a step that is not
 # small at all. TRPO therefore shrinks the step by a
-# line search until the true KL (estimated on samples) is within bounds and the objective
-# improved. For a language model the step is also expensive: $F$ has one row per parameter, so
-# TRPO never forms it and solves $F x = g$ by conjugate gradients, each iteration a
-# Fisher-vector product that costs about one more backward pass. PPO, and GRPO after it, keep
-# the idea (do not move the policy far from the one that sampled the data) and drop the
-# machinery. Section 5 shows how.
+# line search until the true KL (on a real problem, the mean KL over the sampled prefixes) is
+# within bounds and the surrogate improved. For a language model the step is also expensive: $F$
+# has one row and one column per parameter, so TRPO never forms it. It solves $F x = g$ by
+# conjugate gradients, which need only products $F v$, each about the cost of a gradient
+# computed twice over (a backward pass, and a backward pass through that one).
+#
+# ### Exercise 4.2 — TRPO's step without forming $F$
+#
+# Write the three parts, in the order TRPO uses them. All tensors are float64, `theta` is a flat
+# parameter vector and `log_prob_fn(theta)` returns the log-probability of every outcome.
+#
+# 1. `fisher_vector_product(log_prob_fn, theta, v)` returns $F v$ without forming $F$. Section 1
+#    showed that $F$ is the Hessian of $\theta' \mapsto \mathrm{KL}(\pi_\theta \,\|\,
+#    \pi_{\theta'})$ at $\theta' = \theta$. A Hessian-vector product is the gradient of a
+#    gradient: differentiate the KL once, keeping the graph, take its dot product with $v$, and
+#    differentiate again. Think about which side of the KL must not carry a gradient. (The
+#    checker refuses an answer that builds a Jacobian or Hessian.)
+# 2. `conjugate_gradient(matrix_vector_product, b, iters)` returns $x$ after `iters` iterations
+#    of conjugate gradients on $A x = b$ from $x = 0$, where $A$ (symmetric positive definite) is
+#    known only through `matrix_vector_product`, called once per iteration. Each iteration moves
+#    $x$ along a search direction $p$ by the step that minimizes $\tfrac12 x^\top A x - b^\top x$
+#    along $p$, updates the residual $r = b - Ax$, and builds the next direction from the new
+#    residual, made $A$-conjugate to $p$ ($p_{\text{new}}^\top A\, p = 0$). Derive the two
+#    coefficients; stop early if the residual is already zero.
+# 3. `trpo_step(log_prob_fn, theta, surrogate, max_kl, cg_iters, damping, backtrack,
+#    max_backtracks)` returns the new parameters. `surrogate(theta)` is a differentiable
+#    estimate of the objective; $g$ is its gradient at `theta`. Solve $(F + \text{damping}\,I)\,x = g$
+#    with your two functions, scale $x$ to the edge of the quadratic KL ball, then try the
+#    fractions `backtrack**k` of that step for `k = 0, 1, ..., max_backtracks - 1` and return the
+#    first candidate whose exact KL from $\pi_\theta$ (`trust.kl(log_prob_fn(theta),
+#    log_prob_fn(candidate))`) is at most `max_kl` and whose surrogate is higher than at `theta`.
+#    If none passes, return `theta` unchanged.
+
+# %%
+def fisher_vector_product(log_prob_fn, theta, v):
+    """F v, by two backward passes through theta' -> KL(pi_theta || pi_theta') at theta' = theta."""
+    raise NotImplementedError  # your code here
+
+
+exercises.check_fisher_vector_product(fisher_vector_product)
+
+
+# %%
+def conjugate_gradient(matrix_vector_product, b, iters):
+    """x with A x = b after `iters` conjugate-gradient iterations from x = 0."""
+    raise NotImplementedError  # your code here
+
+
+exercises.check_conjugate_gradient(conjugate_gradient)
+
+
+# %%
+def trpo_step(log_prob_fn, theta, surrogate, max_kl, cg_iters=10, damping=1e-3, backtrack=0.5,
+              max_backtracks=10):
+    """One TRPO update: the natural direction by CG, scaled to the KL ball, then a line search."""
+    raise NotImplementedError  # your code here
+
+
+exercises.check_trpo_step(trpo_step)
+
+# %% [markdown]
+# Your step on two problems: section 1's sequence policy from a moderately peaked start, with the
+# per-token surrogate estimated on sampled sequences (as a real implementation has it), and
+# section 2's near-deterministic bandit with its exact objective. The cell prints the true KL of
+# the full step (the quadratic model promised `MAX_KL`) and the fraction of the step the line
+# search kept; where it kept all of it, the step is `trust.kl_step`'s, computed with $F$ formed.
+
+# %%
+def sampled_surrogate(policy, theta_start, reward_table, n, generator):
+    """The per-token surrogate on n sequences sampled from pi_theta_start, A = R - mean R."""
+    x = policy.sample(theta_start, n, generator)
+    index = (x * policy.V ** torch.arange(policy.T - 1, -1, -1)).sum(-1)   # the sequence's row
+    A = reward_table[index] - reward_table[index].mean()
+    logp_start = policy.token_log_probs(theta_start, x).detach()
+    return lambda th: (torch.exp(policy.token_log_probs(th, x) - logp_start) * A[:, None]).sum(-1).mean()
+
+
+MAX_KL = 0.01
+gen = torch.Generator().manual_seed(2)
+peaked = 2.0 * torch.randn(sequence_policy.n_params, generator=gen, dtype=torch.float64)
+problems = {
+    "sequence policy, sampled surrogate": (sequence_policy.log_probs, peaked, sampled_surrogate(
+        sequence_policy, peaked, torch.rand(2 ** 3, generator=gen, dtype=torch.float64), 64, gen)),
+    "near-deterministic bandit": (trust.bandit_log_probs, starts[0].double(),
+                                  lambda th: trust.objective(trust.bandit_log_probs, th, reward.double())),
+}
+kept = {}
+for label, (log_prob_fn, theta, surrogate) in problems.items():
+    new = trpo_step(log_prob_fn, theta, surrogate, MAX_KL)
+    start = theta.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(surrogate(start), start)
+    full = trust.kl_step(trust.fisher_matrix(log_prob_fn, theta), g, MAX_KL, damping=1e-3)
+    kept[label] = float((new - theta).norm() / full.norm())
+    true_full = float(trust.kl(log_prob_fn(theta), log_prob_fn(theta + full)))
+    print(f"{label:35s}: true KL of the full step {true_full:.4f}, fraction kept {kept[label]:.3g}, "
+          f"true KL of the step taken {float(trust.kl(log_prob_fn(theta), log_prob_fn(new))):.4f}")
+    if kept[label] > 0.999:
+        assert torch.allclose(new - theta, full, atol=1e-8)   # your matrix-free step is kl_step's
+assert kept["sequence policy, sampled surrogate"] > 0.999 and kept["near-deterministic bandit"] < 0.999
+
+# %% [markdown]
+# On the sequence policy the quadratic model is good, and the full step passes. On the
+# near-deterministic bandit the step scaled to the quadratic ball is long, its true KL is above
+# the budget, and the line search cuts it back. PPO, and GRPO after it, keep the idea (do
+# not move the policy far from the one that sampled the data) and drop the machinery: no $F$,
+# no conjugate gradients, no line search, only a clip on each token's ratio. Section 5 shows how.
 #
 # ## 4. Reusing samples: importance sampling
 #

@@ -6,8 +6,7 @@ import torch
 from course_utils import losses, trust
 from course_utils.exercises import ExerciseError
 from course_utils.trust_exercises import (check_clip_fraction, check_fisher_matrix,
-                                          check_importance_weighted_surrogate,
-                                          check_natural_gradient)
+                                          check_importance_weighted_surrogate)
 
 D = torch.float64
 SEQ = trust.SequencePolicy(T=3, V=2)
@@ -151,16 +150,6 @@ def test_fisher_checker_accepts_correct_answers(answer):
     check_fisher_matrix(answer)
 
 
-@pytest.mark.parametrize("answer", [
-    lambda F, g, damping: torch.linalg.solve(F + damping * torch.eye(len(g), dtype=F.dtype), g),
-    lambda F, g, damping: torch.linalg.inv(F + damping * torch.eye(len(g), dtype=F.dtype)) @ g,
-    lambda F, g, damping: torch.cholesky_solve(g[:, None], torch.linalg.cholesky(
-        F + damping * torch.eye(len(g), dtype=F.dtype)))[:, 0],
-])
-def test_natural_gradient_checker_accepts_correct_answers(answer):
-    check_natural_gradient(answer)
-
-
 def weight_detached(logp_new, logp_old, rewards, mask):
     """Correct, written differently: the weight as a constant, times the score function."""
     w = torch.exp(((logp_new - logp_old) * mask).sum(-1)).detach()
@@ -215,30 +204,6 @@ def test_fisher_checker_refuses_an_answer_that_changes_theta():
 
     with pytest.raises(ExerciseError, match="changed its input `theta` in place"):
         check_fisher_matrix(in_place)
-
-
-WRONG_NATURAL = [
-    (lambda F, g, d: (F + d * torch.eye(len(g), dtype=F.dtype)) @ g, "multiplies by F;"),
-    (lambda F, g, d: F @ g, "multiplies by F without damping"),
-    (lambda F, g, d: g / (torch.diag(F) + d), "diagonal approximation"),
-    (lambda F, g, d: torch.linalg.solve(F + d, g), "added to every entry"),
-    (lambda F, g, d: torch.linalg.solve(F, g), "damping is missing"),
-]
-
-
-@pytest.mark.parametrize("answer, diagnosis", WRONG_NATURAL, ids=[d for _, d in WRONG_NATURAL])
-def test_natural_gradient_checker_names_each_mistake(answer, diagnosis):
-    with pytest.raises(ExerciseError, match=diagnosis):
-        check_natural_gradient(answer)
-
-
-def test_natural_gradient_checker_refuses_damping_added_in_place():
-    def in_place(F, g, damping):
-        F += damping * torch.eye(len(g), dtype=F.dtype)
-        return torch.linalg.solve(F, g)
-
-    with pytest.raises(ExerciseError, match="changed its input `F` in place"):
-        check_natural_gradient(in_place)
 
 
 def _is_wrong(kind):
