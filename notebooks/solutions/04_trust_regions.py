@@ -353,8 +353,8 @@ assert gaps[0.5][0] / gaps[0.05][0] < 300 < gaps[0.5][1] / gaps[0.05][1]
 # $$\max_\theta\ L(\theta) \quad\text{subject to}\quad \bar{\mathrm{KL}}(\pi_{\text{old}} \,\|\, \pi_\theta) \le \varepsilon .$$
 #
 # PPO's clip (section 5) is a cheaper stand-in for the same constraint on the same surrogate.
-# The cell measures the gap $J - L$ on the sequence policy along one direction: a tenth of the
-# step leaves about a hundredth of the gap, the second order that the KL term bounds.
+# The cell measures the gap $J - L$ on the sequence policy along one direction: shrinking the
+# step tenfold shrinks the gap about a hundredfold, the second order that the KL term bounds.
 
 # %%
 policy = trust.SequencePolicy(T=3, V=3)
