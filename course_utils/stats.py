@@ -103,6 +103,7 @@ class PairedComparison:
     a: tuple[float, ...]
     b: tuple[float, ...]
     level: float
+    unit: str = "seed"      # what pairs the values: "seed", or "prompt" for two policies scored on the same prompts
 
     @property
     def n(self) -> int:
@@ -159,17 +160,18 @@ class PairedComparison:
         return exact if self.n <= EXACT_UP_TO else max(exact, 1.0 / (SIGN_SAMPLES + 1))
 
     def verdict(self, fmt: str = "{:+.3f}") -> str:
-        """One line: per-seed differences, mean and interval, p-value, and the verdict, with
+        """One line: the per-seed (per-unit) differences, mean and interval, p-value, and the verdict, with
         the smallest detectable difference beside a "no difference detected"."""
         per_seed = ", ".join(fmt.format(d) for d in self.diffs)
         if self.sd == 0:
-            what = "identical on every seed" if self.mean == 0 else "the same difference on every seed"
-            return f"per-seed differences [{per_seed}]: {what}"
+            what = "identical on every" if self.mean == 0 else "the same difference on every"
+            return f"per-{self.unit} differences [{per_seed}]: {what} {self.unit}"
         low, high = self.interval
         alpha = 1 - self.level
         nonzero = sum(d != 0 for d in self.diffs)
-        seeds = f"{self.n} seeds" if nonzero == self.n else f"{nonzero} of {self.n} seeds differing"
-        head = (f"per-seed differences [{per_seed}], mean {fmt.format(self.mean)}, "
+        units = f"{self.unit}s"
+        seeds = f"{self.n} {units}" if nonzero == self.n else f"{nonzero} of {self.n} {units} differing"
+        head = (f"per-{self.unit} differences [{per_seed}], mean {fmt.format(self.mean)}, "
                 f"{self.level:.0%} t-interval [{fmt.format(low)}, {fmt.format(high)}] "
                 f"({self.n - 1} df), sign-flip p = {self.p_value:.3g} (its smallest possible with "
                 f"{seeds}: {self.p_floor:.3g})")
@@ -180,20 +182,22 @@ class PairedComparison:
             # that each is as likely either sign
             why = (f"it cannot go below {self.p_floor:.3g} with {seeds}" if self.p_floor > alpha
                    else "these differences are not extreme enough for it")
-            return head + ("; the t-interval excludes 0: a difference if the per-seed differences "
+            return head + (f"; the t-interval excludes 0: a difference if the per-{self.unit} differences "
                            f"are roughly normal, which the sign-flip test does not confirm: {why}")
         if self.p_value <= alpha:
             return head + ("; the t-interval includes 0 but the sign-flip test finds a difference: "
-                           "the differences lean one way, and their spread (often one seed far "
-                           "from the others) widens the t-interval; read the per-seed values")
+                           f"the differences lean one way, and their spread (often one {self.unit} far "
+                           f"from the others) widens the t-interval; read the per-{self.unit} values")
         return head + (f"; the t-interval includes 0: no difference detected (a t-test on these "
-                       f"seeds would detect about {fmt.format(self.detectable).lstrip('+')} at 80% "
+                       f"{units} would detect about {fmt.format(self.detectable).lstrip('+')} at 80% "
                        f"power if the true spread were the observed one, itself a rough estimate "
                        f"from {self.n - 1} df)")
 
 
-def paired(a: list[float], b: list[float], level: float = 0.95) -> PairedComparison:
-    """Compare arm ``a`` with arm ``b`` over shared seeds (``a[i]``, ``b[i]`` from seed i)."""
+def paired(a: list[float], b: list[float], level: float = 0.95, unit: str = "seed") -> PairedComparison:
+    """Compare arm ``a`` with arm ``b`` over shared seeds (``a[i]``, ``b[i]`` from seed i), or over
+    whatever else pairs them (``unit``: "prompt" when two policies are scored on the same
+    held-out prompts)."""
     a, b = tuple(float(x) for x in a), tuple(float(x) for x in b)
     if len(a) != len(b):
         raise ValueError(f"paired arms need one value per shared seed; got {len(a)} and {len(b)}")
@@ -203,4 +207,4 @@ def paired(a: list[float], b: list[float], level: float = 0.95) -> PairedCompari
         raise ValueError("paired arms must hold finite numbers")
     if not 0.5 <= level < 1:
         raise ValueError(f"level must be in [0.5, 1), got {level}")
-    return PairedComparison(a=a, b=b, level=level)
+    return PairedComparison(a=a, b=b, level=level, unit=unit)

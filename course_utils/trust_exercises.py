@@ -96,23 +96,37 @@ def check_fisher_matrix(fn: Callable) -> None:
 
 
 class _NoFullMatrix:
-    """While active, the functions that build a Jacobian or Hessian raise: an answer that forms
-    F (or A) explicitly is not matrix-free, and at a language model's size it would not fit."""
+    """While active, the functions that build a Jacobian or Hessian raise, and the backward
+    passes are counted: an answer that forms F (or A) explicitly is not matrix-free, and at a
+    language model's size it would not fit. F v by double backward takes two or three backward
+    passes, whatever the number of outcomes; F built from the scores takes one per outcome
+    (``grad_calls``). An answer that imports ``jacobian`` under its own name before the checker
+    runs escapes the first test, not the second."""
     TARGETS = [(torch.autograd.functional, "jacobian"), (torch.autograd.functional, "hessian"),
                (torch.func, "jacrev"), (torch.func, "jacfwd"), (torch.func, "hessian"),
                (trust, "fisher_matrix")]
 
     def __init__(self, name: str):
-        self.name, self.saved = name, []
+        self.name, self.saved, self.grad_calls = name, [], 0
 
     def __enter__(self):
         def refuse(*args, **kwargs):
             raise ExerciseError(f"{self.name}: this builds a full Jacobian or Hessian (F itself). "
                                 f"The point is never to form F: get F v from two backward passes "
                                 f"through the KL (torch.autograd.grad with create_graph=True)")
+
+        def counted(original):
+            def wrapper(*args, **kwargs):
+                self.grad_calls += 1
+                return original(*args, **kwargs)
+            return wrapper
+
         for module, attr in self.TARGETS:
             self.saved.append((module, attr, getattr(module, attr)))
             setattr(module, attr, refuse)
+        for module, attr in ((torch.autograd, "grad"), (torch.Tensor, "backward")):
+            self.saved.append((module, attr, getattr(module, attr)))
+            setattr(module, attr, counted(getattr(module, attr)))
         return self
 
     def __exit__(self, *exc):
@@ -143,8 +157,14 @@ def check_fisher_vector_product(fn: Callable) -> None:
     for label, log_prob_fn, theta in _policies():
         for _ in range(2):   # two directions per policy
             v = torch.randn(len(theta), generator=gen, dtype=torch.float64)
-            with _NoFullMatrix(name):
+            with _NoFullMatrix(name) as guard:
                 got = _as_tensor(name, _run(name, fn, dict(log_prob_fn=log_prob_fn, theta=theta, v=v)))
+            outcomes = len(log_prob_fn(theta))
+            if outcomes > 4 and guard.grad_calls >= outcomes:
+                raise ExerciseError(f"{name}: {guard.grad_calls} backward passes for one F v on {label} "
+                                    f"({outcomes} outcomes): one per outcome builds F from the scores. "
+                                    f"Matrix-free, F v takes two backward passes through the KL, "
+                                    f"however many outcomes there are")
             want = trust.fisher_matrix(log_prob_fn, theta) @ v
             if got.shape != want.shape:
                 raise ExerciseError(f"{name}: on {label} the result has shape {tuple(got.shape)}; F v is "
@@ -181,6 +201,23 @@ def _counting(A: torch.Tensor) -> tuple[Callable, list]:
     return product, calls
 
 
+def _cg_variant(A: torch.Tensor, b: torch.Tensor, iters: int, beta: str) -> torch.Tensor:
+    """CG with a wrong conjugation coefficient: negated, inverted, or the direction rebuilt from
+    the residual before it is updated."""
+    x, r = torch.zeros_like(b), b.clone()
+    p, rr = r.clone(), b @ b
+    for _ in range(iters):
+        Ap = A @ p
+        alpha = rr / (p @ Ap)
+        x = x + alpha * p
+        r_new = r - alpha * Ap
+        rr_new = r_new @ r_new
+        coefficient = {"negated": -rr_new / rr, "inverted": rr / rr_new, "stale": rr_new / rr}[beta]
+        p = (r if beta == "stale" else r_new) + coefficient * p
+        r, rr = r_new, rr_new
+    return x
+
+
 def _steepest_descent(A: torch.Tensor, b: torch.Tensor, iters: int) -> torch.Tensor:
     x, r = torch.zeros_like(b), b.clone()
     for _ in range(iters):
@@ -214,9 +251,13 @@ def check_conjugate_gradient(fn: Callable) -> None:
             raise ExerciseError(f"{name}: on {label} the result has shape {tuple(got.shape)}, expected "
                                 f"{tuple(want.shape)}")
         if len(calls) > iters + 1:
+            converged = _close(got.detach(), torch.linalg.solve(A, b), 1e-7)
             raise ExerciseError(f"{name}: {len(calls)} matrix-vector products for {iters} iterations on "
-                                f"{label}. CG needs one per iteration; calling it once per coordinate "
-                                f"builds the matrix, which the method exists to avoid")
+                                f"{label}. CG needs one per iteration and stops after `iters`; "
+                                + ("running it to convergence, or a solve that builds the matrix, "
+                                   "ignores iters, which is what bounds TRPO's cost" if converged else
+                                   "calling it once per coordinate builds the matrix, which the "
+                                   "method exists to avoid"))
         if _close(got.detach(), want, 1e-7):
             continue
         mistakes = {
@@ -225,6 +266,13 @@ def check_conjugate_gradient(fn: Callable) -> None:
             "next direction conjugate to the last, p = r + (r_new . r_new / r . r) p":
                 _steepest_descent(A, b, iters),
             "this is one fewer iteration than asked": trust.conjugate_gradient(lambda x: A @ x, b, iters - 1),
+            "this is one more iteration than asked": trust.conjugate_gradient(lambda x: A @ x, b, iters + 1),
+            "the conjugation coefficient has the wrong sign: beta = +(r_new . r_new) / (r . r)":
+                _cg_variant(A, b, iters, "negated"),
+            "the conjugation coefficient is inverted: beta = (r_new . r_new) / (r . r), the new "
+            "residual over the old": _cg_variant(A, b, iters, "inverted"),
+            "the next direction is built from the residual before its update: update r first, "
+            "then p = r_new + beta p": _cg_variant(A, b, iters, "stale"),
         }
         if iters < len(A):
             mistakes[f"this is the exact solution; after {iters} iterations CG has not reached it "
@@ -241,7 +289,8 @@ def check_conjugate_gradient(fn: Callable) -> None:
 
 def _trpo_variant(log_prob_fn, theta, surrogate, max_kl, cg_iters, damping, backtrack, max_backtracks,
                   fvp: str = "right", direction: str = "natural", scale: str = "kl ball",
-                  search: str = "both", fallback: str = "theta", kl_side: str = "old || new"):
+                  search: str = "both", fallback: str = "theta", kl_side: str = "old || new",
+                  fractions: str = "backtrack**k"):
     """trust.trpo_step, or one of the plausible mistakes (the arguments name them)."""
     theta = theta.detach()
     start = theta.clone().requires_grad_(True)
@@ -255,16 +304,24 @@ def _trpo_variant(log_prob_fn, theta, surrogate, max_kl, cg_iters, damping, back
     else:
         d = 0.0 if fvp == "undamped" else damping
         product = lambda v: trust.fisher_vector_product(log_prob_fn, theta, v) + d * v   # noqa: E731
-    x = g.clone() if direction == "gradient" else trust.conjugate_gradient(product, g, cg_iters)
-    curvature = g @ product(x) if direction == "gradient" else g @ x   # x^T (F + damping) x for the gradient
+    x = g.clone() if direction.startswith("gradient") else trust.conjugate_gradient(product, g, cg_iters)
+    if direction == "negated":
+        x = -x
+    curvature = {"gradient": lambda: g @ product(x),   # x^T (F + damping) x for the gradient
+                 "gradient, undamped": lambda: g @ trust.fisher_vector_product(log_prob_fn, theta, g),
+                 "natural": lambda: g @ x, "negated": lambda: -(g @ x)}[direction]()
+    if scale == "undamped":
+        curvature = x @ trust.fisher_vector_product(log_prob_fn, theta, x)
     factor = {"kl ball": torch.sqrt(2 * max_kl / curvature), "no 2": torch.sqrt(max_kl / curvature),
+              "undamped": torch.sqrt(2 * max_kl / curvature),
               "none": torch.tensor(1.0, dtype=g.dtype)}[scale]
     delta = factor * x
     log_p = log_prob_fn(theta)
     candidate = theta + delta
     with torch.no_grad():
         for k in range(max_backtracks if search != "none" else 1):
-            candidate = theta + backtrack ** k * delta
+            fraction = {"k+1": backtrack ** (k + 1), "linear": backtrack * k}.get(fractions, backtrack ** k)
+            candidate = theta + fraction * delta
             if search == "none":
                 return candidate
             new = log_prob_fn(candidate)
@@ -287,10 +344,21 @@ TRPO_MISTAKES = {
     "scaled to the KL ball can overshoot a nearby maximum)": dict(search="kl"),
     "the step follows the plain gradient g, scaled to the KL ball; TRPO's direction is "
     "x = (F + damping I)^-1 g, from conjugate gradients on g": dict(direction="gradient"),
+    "the step follows the plain gradient g, scaled with the undamped g^T F g; TRPO's direction is "
+    "x = (F + damping I)^-1 g, from conjugate gradients on g": dict(direction="gradient, undamped"),
+    "the step goes downhill (along -x): the surrogate is to be maximized, so the step is "
+    "+sqrt(2 max_kl / g.x) x": dict(direction="negated"),
+    "the line search tries backtrack**(k + 1): its first candidate must be the full step, "
+    "backtrack**0 = 1": dict(fractions="k+1"),
+    "the line search tries backtrack * k (0, then backtrack, 2 backtrack, ...); the fractions are "
+    "powers, backtrack**k": dict(fractions="linear"),
     "the step is x = (F + damping I)^-1 g itself, not scaled to the KL ball: multiply it by "
-    "sqrt(2 max_kl / g.x), so that 1/2 delta^T F delta = max_kl": dict(scale="none"),
-    "the factor 2 is missing: 1/2 delta^T F delta = max_kl gives delta = sqrt(2 max_kl / g.x) x":
-        dict(scale="no 2"),
+    "sqrt(2 max_kl / g.x), so that 1/2 delta^T (F + damping I) delta = max_kl": dict(scale="none"),
+    "the factor 2 is missing: 1/2 delta^T (F + damping I) delta = max_kl gives "
+    "delta = sqrt(2 max_kl / g.x) x": dict(scale="no 2"),
+    "the step is scaled with the undamped F (1/2 x^T F x); scale it with the damped matrix CG "
+    "solved, 1/2 delta^T (F + damping I) delta = max_kl, i.e. delta = sqrt(2 max_kl / g.x) x":
+        dict(scale="undamped"),
     "when no step passes the line search, the last one tried is returned; TRPO keeps theta "
     "(return it unchanged)": dict(fallback="last"),
     "the KL is measured the other way round; the constraint is KL(pi_theta || pi_new), the old "
@@ -375,7 +443,8 @@ def check_trpo_step(fn: Callable) -> None:
         kw = {**TRPO_DEFAULTS, **kwargs}
         args = dict(log_prob_fn=log_prob_fn, theta=theta, surrogate=surrogate, max_kl=kw["max_kl"],
                     **{k: kw[k] for k in TRPO_DEFAULTS})     # in the signature's order
-        got = _as_tensor(name, _run(name, fn, args)).detach()
+        with _NoFullMatrix(name):
+            got = _as_tensor(name, _run(name, fn, args)).detach()
         if got.shape != theta.shape:
             raise ExerciseError(f"{name}: on {label} the result has shape {tuple(got.shape)}; return the "
                                 f"new parameters, shaped like theta {tuple(theta.shape)}")
@@ -394,6 +463,12 @@ def check_trpo_step(fn: Callable) -> None:
     if all(_close(a, d, 1e-6) for a, d in zip(answers, defaults)):
         raise ExerciseError(f"{name}: the answer ignores the arguments it is given (cg_iters, damping, "
                             f"backtrack, max_backtracks) and uses the defaults; pass them through")
+    for argument, default in TRPO_DEFAULTS.items():
+        if all(_close(a, trust.trpo_step(f, th, s, **{**TRPO_DEFAULTS, **kw, argument: default}), 1e-6)
+               for a, (_, f, th, s, kw) in zip(answers, cases)):
+            raise ExerciseError(f"{name}: the answer does not follow its argument {argument}: on "
+                                f"every case it does what {argument}={default} does; use the value "
+                                f"it is given")
     label, _, theta, _, _ = cases[next(i for i, (a, w) in enumerate(zip(answers, wants)) if not _close(a, w, 1e-6))]
     i = [c[0] for c in cases].index(label)
     raise ExerciseError(f"{name}: on {label} the new theta differs from TRPO's by up to "

@@ -132,3 +132,14 @@ def test_the_sign_flip_test_finds_a_clear_difference_and_states_its_floor():
 
 def test_extreme_t_quantiles_are_not_cut_off():
     assert abs(stats.t_quantile(0.99995, 1) - 6366.2) < 0.5      # tables: t_{.99995, 1} = 6366.2
+
+
+def test_a_comparison_paired_by_prompt_says_prompts_not_seeds():
+    """Two policies scored on the same held-out prompts are paired by prompt; the verdict says so."""
+    before = [0.1 * i for i in range(8)]
+    after = [x + 0.05 + 0.01 * (-1) ** i for i, x in enumerate(before)]
+    verdict = stats.paired(after, before, unit="prompt").verdict()
+    assert "per-prompt differences" in verdict and "8 prompts" in verdict
+    assert "seed" not in verdict
+    same = stats.paired([1.0, 2.0], [1.0, 2.0], unit="prompt").verdict()
+    assert same.endswith("identical on every prompt")

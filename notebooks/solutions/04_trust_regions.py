@@ -45,8 +45,9 @@
 # - PPO's clip as a trust region you can afford, the clip fraction that tells you it binds, and
 #   what reusing a batch buys and costs on the toy task and on SmolLM2.
 #
-# **Exercises**: 4.1 the Fisher matrix, 4.2 the natural gradient, 4.3 the importance-weighted
-# policy gradient, 4.4 the clip fraction.
+# **Exercises**: 4.1 the Fisher matrix, 4.2 TRPO's step without forming $F$ (Fisher-vector
+# products, conjugate gradients, the line search), 4.3 the importance-weighted policy gradient,
+# 4.4 the clip fraction.
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
@@ -250,18 +251,22 @@ assert all(n < v for (n, _), (v, _) in zip(results["natural"], results["vanilla"
 # ### The natural gradient as multiplicative weights
 #
 # Why the natural gradient escapes the plateau is clearest in probabilities. Its direction here is
-# the reward gaps, so a step of size $\eta$ adds $\eta\,(r_k - r_K)$ to logit $k$. The shift
-# $-\eta r_K$ is common to every logit (the fixed one included, after renormalizing), so
+# the reward gaps, so a step of size $\eta$ adds $\eta\,(r_k - r_K)$ to each free logit $k$ and
+# nothing to the fixed one. That is the same as adding $\eta r_k$ to every logit, the fixed one
+# included, and then subtracting $\eta r_K$ from all of them, which the softmax ignores. So
 #
 # $$\pi'_k = \frac{\pi_k\, e^{\eta r_k}}{\sum_j \pi_j\, e^{\eta r_j}} ,$$
 #
-# the multiplicative-weights (Hedge) update: every arm's probability is multiplied by a factor
-# that depends on its reward only, not on how small the probability already is. Plain ascent
+# the multiplicative-weights (Hedge) update: every arm's probability is multiplied by
+# $e^{\eta r_k}$, which depends on its reward only, not on how small the probability already is,
+# and all are then divided by the same normalizer. Plain ascent
 # instead adds $\eta\,\pi_k (r_k - J)$ to logit $k$, a change proportional to the probability it
-# is trying to raise. (This is Kakade's observation in the paper that introduced the natural
-# policy gradient, 2001: for a softmax policy the natural gradient is the advantage, up to a
-# constant, because the advantage is the best fit of the compatible function approximation, so
-# the step moves each logit by its own action's advantage.) The cell checks the identity on a near-deterministic start.
+# is trying to raise. (This follows from Kakade 2001, Theorem 1: the natural gradient is the
+# weight vector of the best compatible approximation $w^\top\nabla\log\pi$ to the advantage. For
+# a softmax with one logit per action that approximation is exact, so $w$ is the advantage up to
+# a constant. Kakade's own reading, his Theorem 2, is that a large natural step tends to the
+# greedy action; the multiplicative-weights form is written out in Agarwal, Kakade, Lee and
+# Mahajan, 2021.) The cell checks the identity on a near-deterministic start.
 
 # %%
 eta = 0.7
@@ -335,24 +340,31 @@ assert gaps[0.5][0] / gaps[0.05][0] < 300 < gaps[0.5][1] / gaps[0.05][1]
 # %% [markdown]
 # ## 3. TRPO's step, and where its model breaks
 #
-# TRPO (Schulman et al., 2015) optimizes the same objective as PPO and GRPO after it: the
-# **per-token surrogate** of section 4, $L(\theta) = \mathbb{E}_{\pi_{\text{old}}}\big[\sum_t
+# TRPO (Schulman et al., 2015) maximizes the same **per-token surrogate** that PPO and GRPO
+# later clip, the one of section 4, $L(\theta) = \mathbb{E}_{\pi_{\text{old}}}\big[\sum_t
 # \rho_t(\theta)\, A\big]$, whose gradient at $\theta_{\text{old}}$ is the policy gradient $g$.
 # The surrogate agrees with $J$ only to first order around $\theta_{\text{old}}$, and that is
-# why a trust region is needed at all. Kakade and Langford (2002), and TRPO's Theorem 1 for
-# discounted problems, bound the gap:
+# why a trust region is needed at all. Kakade and Langford (2002) bounded the gap for mixtures
+# of the old and the new policy; TRPO's Theorem 1 extends the bound to any two policies in total
+# variation, and with $\mathrm{TV}^2 \le \mathrm{KL}$ it becomes
 #
 # $$J(\pi') \ \ge\ L_{\pi}(\pi') - C\,\max_s \mathrm{KL}\big(\pi(\cdot\mid s)\,\|\,\pi'(\cdot\mid s)\big),
 # \qquad C = \frac{4\gamma\max_{s,a}|A_\pi(s,a)|}{(1-\gamma)^2},$$
 #
-# with $L_\pi$ normalized so that $L_\pi(\pi) = J(\pi)$. Maximizing the right side can only
-# improve $J$, but $C$ is so large that the steps would be tiny. TRPO keeps the shape of the
+# with $L_\pi(\pi') = J(\pi) + \mathbb{E}_\pi\big[\sum_t (\rho_t - 1) A\big]$, the $L$ above shifted by a
+# constant so that $L_\pi(\pi) = J(\pi)$. Both bounds are for discounted returns, $\gamma < 1$;
+# at $\gamma = 1$, as on this lesson's sequences, $C$ is infinite, so the bound motivates the
+# method rather than applying to it. Maximizing the right side cannot decrease $J$, but $C$ is
+# so large that the steps would be tiny. TRPO keeps the shape of the
 # argument and makes it practical: a constraint instead of the penalty, and the mean KL over
 # the sampled states (here: prefixes) instead of the maximum,
 #
 # $$\max_\theta\ L(\theta) \quad\text{subject to}\quad \bar{\mathrm{KL}}(\pi_{\text{old}} \,\|\, \pi_\theta) \le \varepsilon .$$
 #
 # PPO's clip (section 5) is a cheaper stand-in for the same constraint on the same surrogate.
+# This lesson's cells constrain the KL between whole-sequence distributions instead, which is
+# exact here. By the chain rule it is the sum over positions of the expected per-prefix KLs,
+# $T$ times TRPO's mean, so a budget $\varepsilon$ here is $\varepsilon / T$ per prefix in TRPO's terms.
 # The cell measures the gap $J - L$ on the sequence policy along one direction: shrinking the
 # step tenfold shrinks the gap about a hundredfold, the second order that the KL term bounds.
 
@@ -364,7 +376,7 @@ direction = torch.randn(policy.n_params, generator=gen)
 seq_reward = torch.rand(3 ** 3, generator=gen)
 p_old, logp_old = policy.log_probs(theta_old).exp(), policy.token_log_probs(theta_old)
 J_old = float(trust.objective(policy.log_probs, theta_old, seq_reward))
-advantage = seq_reward - J_old   # any constant baseline gives the same surrogate up to a constant
+advantage = seq_reward - J_old   # with (rho - 1), any constant baseline gives exactly the same surrogate
 
 
 def surrogate_exact(theta):
@@ -383,8 +395,8 @@ assert 50 < abs(gap[0.3] / gap[0.03]) < 200   # second order: a tenth of the ste
 
 # %% [markdown]
 # On a bandit or a sequence policy the KL can be computed exactly; this section uses the
-# exact KL as the "true" one. Taking the KL bound literally with the quadratic model of the KL
-# (section 1) and the linear model of $L$ gives TRPO's step: the natural gradient, scaled so
+# exact KL as the "true" one. Replacing the KL in the constraint by its quadratic model
+# (section 1), and $L$ by its linear model, gives TRPO's step: the natural gradient, scaled so
 # that $\tfrac12\delta^\top F\delta = \varepsilon$ exactly,
 #
 # $$\delta = \sqrt{\frac{2\varepsilon}{g^\top F^{-1} g}}\; F^{-1} g .$$
@@ -410,11 +422,12 @@ for label, theta in (("spread out", torch.tensor([0.3, -0.2, 0.1, 0.4])), ("near
 # KL budget grows, and $\delta$ becomes long: the printed $|\delta|$. Along such a long step the
 # quadratic model no longer describes the KL, and it promises a small KL for a step that is not
 # small at all. TRPO therefore shrinks the step by a
-# line search until the true KL (on a real problem, the mean KL over the sampled prefixes) is
-# within bounds and the surrogate improved. For a language model the step is also expensive: $F$
+# line search until the true KL (on a real problem, the mean per-prefix KL over the sampled
+# prefixes) is within bounds and the surrogate improved. For a language model the step is also expensive: $F$
 # has one row and one column per parameter, so TRPO never forms it. It solves $F x = g$ by
-# conjugate gradients, which need only products $F v$, each about the cost of a gradient
-# computed twice over (a backward pass, and a backward pass through that one).
+# conjugate gradients, which need only products $F v$, each a small multiple of a gradient's
+# cost (a backward pass kept differentiable, then a backward pass through it); implementations
+# keep the iterations cheap by computing $F v$ on a subsample of the batch.
 #
 # ### Exercise 4.2 — TRPO's step without forming $F$
 #
@@ -425,8 +438,9 @@ for label, theta in (("spread out", torch.tensor([0.3, -0.2, 0.1, 0.4])), ("near
 #    showed that $F$ is the Hessian of $\theta' \mapsto \mathrm{KL}(\pi_\theta \,\|\,
 #    \pi_{\theta'})$ at $\theta' = \theta$. A Hessian-vector product is the gradient of a
 #    gradient: differentiate the KL once, keeping the graph, take its dot product with $v$, and
-#    differentiate again. Think about which side of the KL must not carry a gradient. (The
-#    checker refuses an answer that builds a Jacobian or Hessian.)
+#    differentiate again. Only one side of the KL may depend on the variable you differentiate:
+#    detach the other (by convention the old policy, $\pi_\theta$), or the KL is 0 for every
+#    $\theta'$. (The checker refuses an answer that builds a Jacobian or Hessian.)
 # 2. `conjugate_gradient(matrix_vector_product, b, iters)` returns $x$ after `iters` iterations
 #    of conjugate gradients on $A x = b$ from $x = 0$, where $A$ (symmetric positive definite) is
 #    known only through `matrix_vector_product`, called once per iteration. Each iteration moves
@@ -437,7 +451,10 @@ for label, theta in (("spread out", torch.tensor([0.3, -0.2, 0.1, 0.4])), ("near
 # 3. `trpo_step(log_prob_fn, theta, surrogate, max_kl, cg_iters, damping, backtrack,
 #    max_backtracks)` returns the new parameters. `surrogate(theta)` is a differentiable
 #    estimate of the objective; $g$ is its gradient at `theta`. Solve $(F + \text{damping}\,I)\,x = g$
-#    with your two functions, scale $x$ to the edge of the quadratic KL ball, then try the
+#    with your two functions, scale $x$ to the edge of the damped quadratic KL ball,
+#    $\tfrac12\delta^\top(F + \text{damping}\,I)\,\delta = $ `max_kl`, that is
+#    $\delta = \sqrt{2\,\text{max\_kl} / g^\top x}\; x$ (CG's iterate satisfies
+#    $g^\top x = x^\top(F + \text{damping}\,I)\,x$), then try the
 #    fractions `backtrack**k` of that step for `k = 0, 1, ..., max_backtracks - 1` and return the
 #    first candidate whose exact KL from $\pi_\theta$ (`trust.kl(log_prob_fn(theta),
 #    log_prob_fn(candidate))`) is at most `max_kl` and whose surrogate is higher than at `theta`.
@@ -489,7 +506,7 @@ def trpo_step(log_prob_fn, theta, surrogate, max_kl, cg_iters=10, damping=1e-3, 
     value = surrogate(start)
     (g,) = torch.autograd.grad(value, start)
     x = conjugate_gradient(lambda v: fisher_vector_product(log_prob_fn, theta, v) + damping * v, g, cg_iters)
-    delta = torch.sqrt(2 * max_kl / (g @ x)) * x          # 1/2 delta^T F delta = max_kl
+    delta = torch.sqrt(2 * max_kl / (g @ x)) * x          # 1/2 delta^T (F + damping I) delta = max_kl
     log_p = log_prob_fn(theta)
     with torch.no_grad():
         for k in range(max_backtracks):
@@ -505,7 +522,8 @@ exercises.check_trpo_step(trpo_step)
 # Your step on two problems: section 1's sequence policy from a moderately peaked start, with the
 # per-token surrogate estimated on sampled sequences (as a real implementation has it), and
 # section 2's near-deterministic bandit with its exact objective. The cell prints the true KL of
-# the full step (the quadratic model promised `MAX_KL`) and the fraction of the step the line
+# the full step (the damped quadratic model, $\tfrac12\delta^\top(F + 10^{-3} I)\delta$, promised
+# `MAX_KL`) and the fraction of the step the line
 # search kept; where it kept all of it, the step is `trust.kl_step`'s, computed with $F$ formed.
 
 # %%
@@ -527,7 +545,7 @@ problems = {
     "near-deterministic bandit": (trust.bandit_log_probs, starts[0].double(),
                                   lambda th: trust.objective(trust.bandit_log_probs, th, reward.double())),
 }
-kept = {}
+kept, full_kl = {}, {}
 for label, (log_prob_fn, theta, surrogate) in problems.items():
     new = trpo_step(log_prob_fn, theta, surrogate, MAX_KL)
     start = theta.clone().requires_grad_(True)
@@ -539,7 +557,9 @@ for label, (log_prob_fn, theta, surrogate) in problems.items():
           f"true KL of the step taken {float(trust.kl(log_prob_fn(theta), log_prob_fn(new))):.4f}")
     if kept[label] > 0.999:
         assert torch.allclose(new - theta, full, atol=1e-8)   # your matrix-free step is kl_step's
+    full_kl[label] = true_full
 assert kept["sequence policy, sampled surrogate"] > 0.999 and kept["near-deterministic bandit"] < 0.999
+assert full_kl["near-deterministic bandit"] > MAX_KL   # the KL, not the surrogate, cut the step
 
 # %% [markdown]
 # On the sequence policy the quadratic model is good, and the full step passes. On the
@@ -732,6 +752,9 @@ if not SMOKE:  # what the text below says, checked on this run's numbers
     mean_kl = {arm: statistics.mean(statistics.mean(r["kl_to_sampler"]) for r in runs) for arm, runs in toy_runs.items()}
     assert all(c == 0 for r in toy_runs["1 update"] for c in r["clip_fraction"])
     assert mean_kl["1 update"] < mean_kl["2 updates, clip"] < mean_kl["4 updates, clip"] < mean_kl["4 updates, no clip"]
+    assert mean_kl["4 updates, no clip"] == max(mean_kl.values())          # drifts furthest
+    mean_clip = {arm: statistics.mean(statistics.mean(r["clip_fraction"]) for r in runs) for arm, runs in toy_runs.items()}
+    assert mean_clip["1 update"] < mean_clip["2 updates, clip"] < mean_clip["4 updates, clip"]   # the clip takes hold
     for a, b in comparisons[:-1]:
         comparison = stats.paired(final[a], final[b])
         assert comparison.significant and comparison.mean > 0, (a, b, comparison.verdict())
@@ -743,10 +766,12 @@ if not SMOKE:  # what the text below says, checked on this run's numbers
 # the drift. Whether the extra updates buy reward per sample is in the last lines, each a
 # comparison paired by seed (`course_utils.stats`): every seed's difference, a t-interval, and
 # beside a "no difference detected" the difference the seeds could have detected. A toy run
-# takes seconds, so the cell affords many seeds, and the intervals are narrow. On this task
-# reuse pays: every reuse arm ends above one update per batch, with a t-interval that excludes
-# 0, so the same samples buy more reward. And the clip earns its place: `4 updates, clip` ends
-# above `4 updates, no clip`, the arm that drifts furthest. Clip-higher's line against the
+# takes seconds, so the cell affords many seeds. On this task reuse pays per sample: every reuse
+# arm ends above one update per batch, with a t-interval that excludes 0, so the same samples
+# buy more training reward, at the cost of one more gradient computation per update; these arms
+# do not separate reuse from a larger effective step size (no arm runs one update at a higher
+# learning rate). And the clip earns its place: `4 updates, clip` ends above `4 updates, no
+# clip`, the arm that drifts furthest. Clip-higher's line against the
 # symmetric clip tells whether the extra room upward mattered here, and if not, how small a
 # difference these seeds could have seen. The cell asserts each of these statements on the run's
 # own numbers, so a change to the toy that breaks one stops the cell.
@@ -820,10 +845,11 @@ for k in range(UPDATES):
 # (Spinning Up's, Stable-Baselines3's `target_kl`) also stop reusing a batch once the measured KL
 # passes a threshold. On a language model the per-token clip is the whole trust region
 # that PPO and GRPO have; the main job keeps one update per batch, where it never binds, and the
-# T4 recipe (lesson 7) does the same. Reuse bought reward per sample on the toy; on the real
-# task its one probe (lesson 7, section 6.3) was heading for an early commitment to one reply,
-# that task's failure, when it was stopped. A lever that wins on one task is a hypothesis on the
-# next.
+# T4 recipe (lesson 7) does the same. Reuse bought reward per sample on the toy. On the real
+# task it was probed once (lesson 7, section 6.3: two updates per batch with clip-higher, on the
+# earlier sharp-reward recipe, one seed), and stopped while its entropy and its share of
+# distinct completions were falling, the way runs that committed early to one reply had gone.
+# One stopped seed shows what can happen, not what reuse does there.
 #
 # ## Check yourself
 #
@@ -831,7 +857,7 @@ for k in range(UPDATES):
 #    does that do to plain gradient ascent started there?
 # 2. The natural gradient of the softmax bandit is the vector of reward gaps, independent of
 #    $\pi$. Where does the factor $\pi_k$ of the plain gradient go?
-# 3. TRPO's step satisfies $\tfrac12\delta^\top F\delta = \varepsilon$ exactly. Why can its true
+# 3. TRPO's step satisfies $\tfrac12\delta^\top (F + \lambda I)\delta = \varepsilon$ exactly. Why can its true
 #    KL still be much larger, and what does TRPO do about it?
 # 4. Why is the sequence weight $\prod_t \rho_t$ unbiased but unusable for long completions, and
 #    what does the per-token ratio give up in exchange?

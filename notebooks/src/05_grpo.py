@@ -442,8 +442,9 @@ for m in ("batch_mean", "rloo"):
 # a t-interval and a sign-flip test. A toy run takes seconds, so the cell affords many seeds
 # (the plot's title says how many), and each "no difference detected" comes with the size of
 # difference these seeds could have seen: it bounds the effect, it does not show the methods
-# equal. The pass rate, scored on few held-out prompts, is much noisier per seed than the mean
-# reward, so its intervals are wider. Where GRPO's extra step, the division by the group's std, can matter: it
+# equal. The pass rate is one greedy, pass-or-fail evaluation on the held-out prompts at the
+# last step, while the reward averages many sampled completions over the last steps; per seed
+# the pass-rate differences spread more widely (the cell asserts it), so its intervals are wider. Where GRPO's extra step, the division by the group's std, can matter: it
 # rescales every prompt's advantages to size about 1, so a prompt whose completions differ only
 # slightly is pushed as hard as one with large differences. That is also the rescaling Dr. GRPO
 # argues biases the objective (`advantage_scale="none"` in `course_utils` turns it off); lesson

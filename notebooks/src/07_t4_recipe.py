@@ -635,7 +635,10 @@ else:
 #    `zero_std_frac` curves show?
 # 5. A run's mean reward is 0.95 and its pass rate 0%. Which three curves do you look at next,
 #    and what would each show if the policy had found a template?
-# 6. Why does multiplying every reward by 2/3 change nothing in GRPO, and why does that make
-#    the early part of a run on the sharp reward identical to one on the shaped reward?
-# 7. Under dynamic sampling, why is the pass rate of the batch trained on higher than the
-#    policy's? Which logged number is not biased that way?
+# 6. Why does multiplying every reward by 2/3 leave GRPO's advantages almost unchanged, and
+#    what is the "almost" (the small constant added to the group's standard deviation)? What
+#    does that say about a run on the sharp reward before its first pass, and why do the
+#    stored sharp and shaped runs still differ from their first steps?
+# 7. Dynamic sampling drops the groups in which every completion got the same reward. Which
+#    groups does that remove, why can the pass rate of the batch trained on then sit above or
+#    below the policy's, and which logged number is not biased that way?
