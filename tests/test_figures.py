@@ -35,12 +35,13 @@ SETUP = {
     "02_reinforce": {"2.1", "2.2", "2.3",                                 # exercise numbers
                      "0.6"},                                              # an illustrative reward level
     "03_baselines": {"3.1", "3.2", "3.3", "16", "128"},                  # exercises; 16 prompts x 8 = 128
-    "04_trust_regions": {"4.1", "4.2", "4.3", "4.4",                     # exercise numbers
-                         "0.1"},                                          # "a step of 0.1" (illustrative)
+    "04_trust_regions": {"4.1", "4.2", "4.3", "4.4", "4.5",              # exercise numbers
+                         "0.1",                                           # "a step of 0.1" (illustrative)
+                         "1.16"},                                         # the TRL version described
     "05_grpo": {"5.1", "5.2", "5.3", "5.4",                               # exercise numbers
                 "0.01",                                                   # "rewards differ by 0.01 or by 1"
                 "16", "128"},                                             # 16 prompts x 8; 128-token prompts
-    "06_grpo_by_hand": {"6.1", "6.2", "6.3",                             # exercise numbers
+    "06_grpo_by_hand": {"6.1", "6.2", "6.3", "6.4", "6.5",               # exercise numbers
                         "0.7", "1.0", "32"},                              # a question's premise
     "07_t4_recipe": {"64", "16", "128", "0.01", "1.0", "15%", "25%",      # t4 preset; plan test tolerances
                      "32", "12", "24", "15", "0.2", "0.7", "0.95", "0%", "50", "6.3",

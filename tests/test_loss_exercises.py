@@ -105,11 +105,15 @@ def _clipped_wrong(kind):
     def answer(lp, old, ref, A, mask, eps_low, eps_high, beta):
         m = mask
         ratio = torch.exp(lp - old)
-        hi = eps_low if kind == "eps_low twice" else eps_high
-        clipped = ratio.clamp(1 - eps_low, 1 + hi) * A
-        unclipped = ratio * A
+        clipped = None
         d = ref - lp
-        kl = {"k1": lp - ref, "k3 reversed": torch.expm1(-d) + d}.get(kind, torch.expm1(d) - d)
+        kl = {"k1": lp - ref, "k3 reversed": torch.expm1(-d) + d,
+              "kl to old": torch.expm1(old - lp) - (old - lp)}.get(kind, torch.expm1(d) - d)
+        if kind == "ratio to ref":
+            ratio = torch.exp(lp - ref)
+        lo, hi = {"eps_high twice": (eps_high, eps_high), "eps swapped": (eps_high, eps_low)}.get(
+            kind, (eps_low, eps_low if kind == "eps_low twice" else eps_high))
+        clipped, unclipped = ratio.clamp(1 - lo, 1 + hi) * A, ratio * A
         if kind == "no clip":
             objective = unclipped
         elif kind == "current ratio":
@@ -148,6 +152,8 @@ WRONG_CLIPPED = [("no clip", "clip is missing"), ("current ratio", "against the 
                  ("padded", "padding is counted"),
                  ("clip fraction both sides", "clip_fraction is"), ("clip fraction padded", "clip_fraction is"),
                  ("kl only with beta", "kl is"), ("tuple", "return three things"),
+                 ("kl to old", "measured against old_logprobs"), ("ratio to ref", "taken against ref_logprobs"),
+                 ("eps_high twice", "eps_high is used on both sides"), ("eps swapped", "swapped"),
                  ("detached", "carries no gradient")]
 
 
@@ -180,3 +186,10 @@ def test_clipped_loss_checker_refuses_an_answer_that_changes_old_logprobs():
 
     with pytest.raises(ExerciseError, match="changed its input `old_logprobs` in place"):
         check_clipped_loss(in_place)
+
+
+def test_answers_computed_in_float32_are_accepted_to_float32s_precision():
+    """Exercise 6.1 computes in float32 (.float()), as the library does; the checkers' float64
+    inputs must not make such answers fail at 1e-8."""
+    check_token_entropy(lambda logits, mask: torch.where(mask.bool(), losses.token_entropy(logits), 0.0))
+    check_clipped_loss(lambda *args: reference_clipped_loss(*[a.float() if torch.is_tensor(a) else a for a in args]))

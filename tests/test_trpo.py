@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from course_utils import trust
-from course_utils import trust_exercises as te
+from course_utils import trpo_exercises as te
 from course_utils.exercises import ExerciseError
-from course_utils.trust_exercises import (check_conjugate_gradient, check_fisher_vector_product,
+from course_utils.trpo_exercises import (check_conjugate_gradient, check_fisher_vector_product,
                                           check_trpo_step)
 
 D = torch.float64

@@ -43,11 +43,13 @@
 # - importance sampling for reusing samples: unbiased with the sequence's weight, whose variance
 #   grows exponentially with the length, and only first-order right with per-token ratios;
 # - PPO's clip as a trust region you can afford, the clip fraction that tells you it binds, and
-#   what reusing a batch buys and costs on the toy task and on SmolLM2.
+#   what reusing a batch buys and costs on the toy task and on SmolLM2;
+# - the training–inference mismatch, measured exactly: what a stale, a lower-precision and a
+#   top-k sampler do to the policy gradient, and what TRL's correction removes and costs.
 #
 # **Exercises**: 4.1 the Fisher matrix, 4.2 TRPO's step without forming $F$ (Fisher-vector
 # products, conjugate gradients, the line search), 4.3 the importance-weighted policy gradient,
-# 4.4 the clip fraction.
+# 4.4 the clip fraction, 4.5 TRL's importance weights for samples from another sampler.
 
 # %%
 # Set-up. In Colab: install course_utils from the course repository, and the embedded
@@ -74,6 +76,7 @@ import torch
 
 from course_utils import losses, stats, toy, trust
 from course_utils import trust_exercises as exercises
+from course_utils import trpo_exercises
 from course_utils.config import smoke_mode
 from course_utils.tracks import differs
 
@@ -471,7 +474,7 @@ def fisher_vector_product(log_prob_fn, theta, v):
     return Fv
 
 
-exercises.check_fisher_vector_product(fisher_vector_product)
+trpo_exercises.check_fisher_vector_product(fisher_vector_product)
 
 
 # %%
@@ -494,7 +497,7 @@ def conjugate_gradient(matrix_vector_product, b, iters):
     return x
 
 
-exercises.check_conjugate_gradient(conjugate_gradient)
+trpo_exercises.check_conjugate_gradient(conjugate_gradient)
 
 
 # %%
@@ -516,7 +519,7 @@ def trpo_step(log_prob_fn, theta, surrogate, max_kl, cg_iters=10, damping=1e-3, 
     return theta.clone()
 
 
-exercises.check_trpo_step(trpo_step)
+trpo_exercises.check_trpo_step(trpo_step)
 
 # %% [markdown]
 # Your step on two problems: section 1's sequence policy from a moderately peaked start, with the
@@ -850,6 +853,131 @@ for k in range(UPDATES):
 # earlier sharp-reward recipe, one seed), and stopped while its entropy and its share of
 # distinct completions were falling, the way runs that committed early to one reply had gone.
 # One stopped seed shows what can happen, not what reuse does there.
+
+# %% [markdown]
+# ## 6. The training–inference mismatch, exactly
+#
+# Fast RL systems sample with one engine and train with another: vLLM's kernels, a lower
+# precision, top-k or top-p sampling, or weights a step behind the trainer's. The completions then
+# come from a sampler $q$, not from $\pi_\theta$, and the policy gradient estimate
+# $R\,\nabla\log\pi_\theta$ averaged over them estimates $\mathbb{E}_q[R\,\nabla\log\pi_\theta]$, not
+# $\nabla J$. Section 4's importance weight is the correction: $\mathbb{E}_q[(\pi_\theta/q)\,R\,
+# \nabla\log\pi_\theta] = \nabla J$ wherever $q$ gives every sequence of $\pi_\theta$ some
+# probability. TRL 1.16 applies it by default when it samples with vLLM
+# (`vllm_importance_sampling_correction=True`): the ratio of the trainer's log-probabilities to
+# the sampler's, per token or per sequence (`vllm_importance_sampling_mode`), either clipped at
+# a cap $C_{\max}$ (`*_truncate`) or set to 0 above it (`*_mask`, which drops the sample). The
+# default is `sequence_mask` with $C_{\max} = 3$. A cap bounds the weights, so it trades bias for
+# variance.
+#
+# Truncated sampling is a different problem. Under top-k or top-p the sampler's log-probabilities
+# are normalized over the tokens it kept, and it gives every other token probability 0. No weight
+# recovers what is never sampled, so the corrected estimate targets neither $\nabla J$ nor the
+# gradient of the objective the sampler actually optimizes, $J_q = \mathbb{E}_q[R]$, whose
+# gradient needs the scores of $q$ itself, $\nabla\log q$.
+#
+# ### Exercise 4.5 — TRL's importance weights
+#
+# Return `[n, T]` weights for samples drawn by the sampler (`logp_sampler`, its per-token
+# log-probabilities) and scored by the trainer (`logp_train`): the ratio
+# $\pi_{\text{train}}/\pi_{\text{sampler}}$ of each token (`mode` `token_truncate` or `token_mask`), or
+# of the whole sequence over its real tokens, repeated on each of them (`sequence_truncate`,
+# `sequence_mask`); clipped at `clip_max` (`*_truncate`) or set to 0 where it exceeds `clip_max`
+# (`*_mask`). The weights are constants, and 0 on padding.
+
+# %%
+def importance_weights(logp_train, logp_sampler, mask, mode, clip_max):
+    """TRL's correction of samples from the sampler towards the trainer's policy, [n, T]."""
+    log_ratio = ((logp_train - logp_sampler) * mask).detach()
+    if mode.startswith("sequence"):
+        log_ratio = log_ratio.sum(-1, keepdim=True).expand_as(mask)
+    ratio = torch.exp(log_ratio)
+    if mode.endswith("truncate"):
+        ratio = ratio.clamp(max=clip_max)
+    else:
+        ratio = torch.where(ratio > clip_max, 0.0, ratio)
+    return ratio * mask
+
+
+exercises.check_importance_weights(importance_weights)
+
+# %% [markdown]
+# The cell measures, exactly, what each estimator's expectation is and how noisy one sample's
+# gradient is (the trace of its covariance), on a three-token policy over four symbols, for
+# three samplers: the trainer's weights one update behind (a stale sampler, as in asynchronous
+# training), the logits rounded to bf16, and top-2 sampling. The bias is relative to the length
+# of the target gradient: $\nabla J$, and for top-2 also $\nabla J_q$. "Full weight" is the
+# uncapped sequence ratio; the TRL modes use your weights with $C_{\max} = 3$.
+
+# %%
+from course_utils import mismatch  # noqa: E402
+
+torch.set_default_dtype(torch.float64)
+mm_policy = trust.SequencePolicy(T=3, V=4)
+gen = torch.Generator().manual_seed(0)
+mm_theta = 1.5 * torch.randn(mm_policy.n_params, generator=gen)
+mm_reward = torch.rand(4 ** 3, generator=gen)
+logp_train = mm_policy.token_log_probs(mm_theta)
+ones = torch.ones_like(logp_train)
+grad_J = trust.exact_gradient(mm_policy.log_probs, mm_theta, mm_reward)
+stale = mm_theta + 0.5 * torch.randn(mm_policy.n_params, generator=torch.Generator().manual_seed(1))
+samplers = {"weights one update behind": mm_policy.token_log_probs(stale),
+            "logits rounded to bf16": mismatch.token_log_probs(mismatch.rounded_table(mm_theta, mm_policy), mm_policy),
+            "top-2 sampling": mismatch.token_log_probs(mismatch.truncated_table(mm_theta, mm_policy, 2), mm_policy)}
+top2 = lambda th: mismatch.truncated_table(th, mm_policy, 2)   # noqa: E731  (the sampler, as a function of theta)
+J_q = lambda th: (mismatch.token_log_probs(top2(th), mm_policy).sum(-1).exp() * mm_reward).sum()   # noqa: E731
+theta_q = mm_theta.clone().requires_grad_(True)
+(grad_J_q,) = torch.autograd.grad(J_q(theta_q), theta_q)
+
+
+def relative(mean, target):
+    return float((mean - target).norm() / target.norm())
+
+
+mismatch_results = {}
+for sampler, logp_sampler in samplers.items():
+    finite = torch.where(torch.isfinite(logp_sampler), logp_sampler, 0.0)   # the weights' input, on the support
+    weights = {"none": None, "full weight": importance_weights(logp_train, finite, ones, "sequence_truncate", float("inf"))}
+    weights.update({mode: importance_weights(logp_train, finite, ones, mode, 3.0) for mode in mismatch.MODES})
+    print(sampler)
+    for label, w in weights.items():
+        mean, variance = mismatch.gradient_moments(mm_policy, mm_theta, logp_sampler, mm_reward, w)
+        mismatch_results[sampler, label] = (relative(mean, grad_J), relative(mean, grad_J_q), variance)
+        versus_q = f", vs grad J_q {relative(mean, grad_J_q):.3f}" if sampler == "top-2 sampling" else ""
+        print(f"   {label:18s}: bias vs grad J {relative(mean, grad_J):.3f}{versus_q}; variance {variance:.3f}")
+mean, variance = mismatch.gradient_moments(mm_policy, mm_theta, samplers["top-2 sampling"], mm_reward,
+                                           score_table=top2)
+mismatch_results["top-2 sampling", "scored under q"] = (relative(mean, grad_J), relative(mean, grad_J_q), variance)
+print(f"   {'scored under q':18s}: bias vs grad J_q {relative(mean, grad_J_q):.1e}; variance {variance:.3f}")
+
+# what the text below says, on these numbers
+for sampler in ("weights one update behind", "logits rounded to bf16"):
+    assert mismatch_results[sampler, "full weight"][0] < 1e-10                     # the full weight is exact
+    assert mismatch_results[sampler, "none"][0] > 2 * mismatch_results[sampler, "sequence_truncate"][0]
+stale_runs = {k: v for (s, k), v in mismatch_results.items() if s == "weights one update behind"}
+assert stale_runs["full weight"][2] > stale_runs["sequence_truncate"][2] > stale_runs["none"][2]   # the cap's trade
+bf16_runs = {k: v for (s, k), v in mismatch_results.items() if s == "logits rounded to bf16"}
+for mode in mismatch.MODES:
+    assert stale_runs["full weight"][2] > stale_runs[mode][2] and stale_runs[mode][0] > 0.01   # between
+    assert bf16_runs[mode][0] < 0.5 * bf16_runs["none"][0]                                     # most of it
+    assert abs(bf16_runs[mode][2] / bf16_runs["none"][2] - 1) < 0.01                           # no variance cost
+    assert min(mismatch_results["top-2 sampling", mode][:2]) > 0.1                             # neither target
+top2_support = torch.isfinite(samplers["top-2 sampling"])
+assert (logp_train[top2_support] <= samplers["top-2 sampling"][top2_support]).all()           # weights below 1
+assert mismatch_results["top-2 sampling", "scored under q"][1] < 1e-10
+torch.set_default_dtype(torch.float32)
+
+# %% [markdown]
+# Read the rows sampler by sampler. One update behind, the uncorrected gradient is far from
+# $\nabla J$; the full sequence weight removes the bias exactly and pays for it in variance; the
+# capped weights sit between, with less variance than the full weight and some bias left. With
+# bf16 logits the mismatch is small, the uncorrected bias small too, and every correction
+# removes most of it at almost no variance (the ratios stay near 1, so the cap never binds).
+# Top-2 sampling is different in kind: every weight is below 1 there (the sampler renormalized
+# over fewer tokens), no mode comes near either target, and only scoring the samples under the
+# sampler's own truncated log-probabilities gives the gradient of what the sampler optimizes.
+# Which target is right is a choice: $\nabla J$ if the model will be deployed without
+# truncation, $\nabla J_q$ if it will be sampled as it was trained.
 #
 # ## Check yourself
 #

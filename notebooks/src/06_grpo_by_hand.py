@@ -19,12 +19,16 @@
 # - how to backpropagate a batch in micro-batches so that the gradient equals the full batch's,
 #   and the normalization mistake that breaks this;
 # - that your step trains SmolLM2, that it computes the library's gradient exactly, and where the
-#   library's speed comes from: sharing the prompt across its group and dropping finished rows.
+#   library's speed comes from: sharing the prompt across its group and dropping finished rows;
+# - the token entropy, the clip and a KL to the reference on a batch used for several updates,
+#   each checked against the library's gradient on SmolLM2.
 #
 # **Exercises**: 6.1 completion log-probabilities, 6.2 sampling a group, 6.3 the micro-batched
-# GRPO backward. Each checker runs your function on small random Qwen2 models (Qwen2.5's
-# architecture; SmolLM2 is a Llama, the same design without biases in the attention
-# projections) against the library, and names the mistake it finds.
+# GRPO backward, 6.4 token entropy, 6.5 the clipped loss of a reused batch, with its clip
+# fraction and KL. The checkers of 6.1 to 6.3 run your function on small random Qwen2 models
+# (Qwen2.5's architecture; SmolLM2 is a Llama, the same design without biases in the attention
+# projections), those of 6.4 and 6.5 on seeded tensors, against the library, and each names the
+# mistake it finds.
 #
 # Runtime: the full run trains SmolLM2 with real weights on the CPU, in minutes (the last cell
 # prints how many); a GPU is used if there is one. In smoke mode (CI) a tiny random model stands
@@ -320,12 +324,14 @@ exercises.check_grpo_backward(grpo_backward)
 # ### The rest of the step: entropy, the clip, a KL to the reference
 #
 # Exercise 6.3 is the whole step when each batch is used once and there is no KL term. Two more
-# pieces make the step a full GRPO step, and section 6 runs them on SmolLM2.
+# things complete what a GRPO trainer computes each step: the token entropy it logs, and, for a
+# batch used more than once, the clip and a KL to the reference. Section 6 runs them on SmolLM2.
 #
 # **The entropy of each token's distribution**, $H_t = -\sum_a \pi(a\mid s_t)\log\pi(a\mid s_t)$,
 # is the number to watch for collapse (lesson 7 diagnoses a run by it), and the one an entropy
-# bonus pushes up; TRL logs it every step, and its `top_entropy_quantile` trains only on a
-# batch's highest-entropy tokens.
+# bonus pushes up (GRPO itself has none). TRL logs it every step, and its
+# `top_entropy_quantile` $= \rho$ keeps only the top-$\rho$ share of tokens by entropy in the
+# policy term (the KL term still covers every token).
 #
 # ### Exercise 6.4 — token entropy
 #
@@ -350,10 +356,17 @@ loss_exercises.check_token_entropy(token_entropy)
 # **A batch used more than once.** With one update per batch the ratio is exactly 1 and the clip
 # never acts (section 4). Reuse the batch for another update and the policy that sampled it is
 # no longer the current one: the ratio is $\rho_t = \pi_\theta / \pi_{\text{old}}$ with
-# $\pi_{\text{old}}$'s log-probabilities *saved when the batch was sampled* (exercise 6.2
-# returns them; recomputing them after the first update would make the ratio 1 again), and the
-# clip starts to remove the incentive of tokens that moved too far. A KL penalty toward a
-# reference model (here the pretrained weights) uses lesson 5's k3 estimate on the same tokens.
+# $\pi_{\text{old}}$'s log-probabilities *fixed before the first update* (exercise 6.2 returns the
+# sampler's; recomputing them after an update would make the ratio 1 again), and the clip starts
+# to remove the incentive of tokens that moved too far. Recomputing them *once*, with the
+# training model before the first update, is also right, and is what TRL and `train.grpo_step`
+# with a bf16 sampler do: it keeps the sampler–trainer rounding gap out of the ratio (lesson 4,
+# section 6, measures that gap's effect). A KL penalty toward a reference model (here the
+# pretrained weights) uses lesson 5's k3 estimate on the same tokens. Once the batch is reused
+# the tokens come from $\pi_{\text{old}}$, not $\pi_\theta$, so its mean is no longer an unbiased
+# estimate of $\mathrm{KL}(\pi_\theta \,\|\, \pi_{\text{ref}})$; weighting each token's k3 by $\rho$
+# restores that (TRL's `use_bias_correction_kl`). The exercise keeps the plain k3, as the
+# library does.
 #
 # ### Exercise 6.5 — the clipped loss, with its clip fraction and KL
 #
@@ -361,8 +374,11 @@ loss_exercises.check_token_entropy(token_entropy)
 # `(loss, clip_fraction, kl)`: the loss is a differentiable scalar, the per-token clipped
 # surrogate plus `beta` times the k3 KL to the reference, averaged over each completion's real
 # tokens and then over completions ('grpo'); `clip_fraction` is the share of real tokens whose
-# gradient the clip removes (lesson 4, exercise 4.4); `kl` is the mean k3 KL over real tokens,
-# whatever `beta` is (a run logs it either way). Both as floats; `advantages` is `[N, 1]`.
+# *surrogate* gradient the clip removes (lesson 4, exercise 4.4; the KL term's gradient still
+# flows there); `kl` is the mean k3 KL over real tokens, whatever `beta` is (with `beta = 0` the
+# penalty is off but the distance can still be measured; TRL and `train.grpo_step` log it only
+# when `beta > 0`, since otherwise they load no reference model). Both as floats; `advantages`
+# is `[N, 1]`.
 
 # %%
 def clipped_loss(logprobs, old_logprobs, ref_logprobs, advantages, mask, eps_low, eps_high, beta):
@@ -467,7 +483,7 @@ print(f"training reward, step 1 -> step {STEPS}: {mine['reward'][0]:.3f} -> {min
 print(f"held-out reward ({HELD_OUT} prompts x 4 samples): {float(reward_before.mean()):.3f} -> "
       f"{float(reward_after_mine.mean()):.3f}; after minus before, {gain.verdict()}")
 if not SMOKE:   # the lesson's promise: your step improves the policy beyond noise
-    assert gain.significant and gain.mean > 0, "the held-out reward did not rise beyond noise"
+    assert gain.significant and gain.p_value <= 0.05 and gain.mean > 0, "the held-out reward did not rise beyond noise"
 
 # %% [markdown]
 # ## 6. The same algorithm as the library
@@ -511,9 +527,11 @@ assert relative < 1e-3, "your step's gradient differs from the library's on the 
 # against the log-probabilities the sampler saved, a KL penalty toward the pretrained model
 # (which sampled this batch, so its log-probabilities are the reference's too), and at every
 # update your gradient against the library's `losses.grpo_loss` on the same weights. The step is
-# then taken with your gradient. Watch the clip fraction: 0 at the first update, up to the
-# small mismatch between the sampler's and the trainer's numbers (section 3), and rising once
-# the first update has moved the policy.
+# then taken with your gradient; each row is measured before its update's step. Watch the clip
+# fraction: 0 at the first update (the sampler's and the trainer's log-probabilities differ by
+# far less than the clip range here, section 3; a bf16 or vLLM sampler can differ by more), then
+# rising once the first update has moved the policy. Because the reference *is* the sampler
+# here, this cell cannot tell `old_logprobs` from `ref_logprobs`; exercise 6.5's checker can.
 
 # %%
 UPDATES, BETA = 3, 0.04
@@ -521,7 +539,6 @@ params = [p for p in model.parameters()]
 model.load_state_dict(initial_state)
 optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
 old_logprobs = ref_logprobs = ro.logprobs      # saved when the batch was sampled
-P = ro.prompt_ids.shape[1]
 
 
 def completion_logits(model, prompt_ids, prompt_mask, completion_ids, completion_mask, temperature):
@@ -555,7 +572,7 @@ for update in range(1, UPDATES + 1):
         entropy = token_entropy(completion_logits(model, *batch, TEMPERATURE), ro.completion_mask)
         mean_entropy = float(entropy.sum() / ro.completion_mask.sum())
         assert torch.allclose(entropy, library_entropy * ro.completion_mask, atol=1e-3)
-    print(f"{update:6d} {float(loss):9.4f} {clip_fraction:14.3f} {kl:10.2e} {mean_entropy:8.3f} "
+    print(f"{update:6d} {loss.item():9.4f} {clip_fraction:14.3f} {kl:10.2e} {mean_entropy:8.3f} "
           f"{relative:30.1e}")
     assert relative < 1e-3, "your clipped loss's gradient differs from the library's"
     clip_fractions.append(clip_fraction)
