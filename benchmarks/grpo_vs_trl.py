@@ -136,6 +136,9 @@ class TRL:
             loss_type="grpo", scale_rewards="group", learning_rate=cfg.lr,
             weight_decay=cfg.weight_decay, max_grad_norm=cfg.max_grad_norm, optim="adamw_torch",
             lr_scheduler_type="constant", use_cpu=True, bf16=False, fp16=False, report_to="none",
+            # TRL's default is True, applied only by trainer.train(), which this loop does not
+            # call; said here so that nobody reads the comparison as checkpointed
+            gradient_checkpointing=False,
             save_strategy="no", logging_steps=10 ** 6, seed=cfg.seed, disable_dropout=True,
             dataloader_num_workers=0)
         self.trainer = GRPOTrainer(model=model, reward_funcs=rewards.shaped_reward, args=args,

@@ -13,7 +13,9 @@ environment checks both Colab and the declared minimum (torch excepted, as above
 Then the notebooks' set-up cell runs exactly as written, with ``google.colab`` present, and the
 course installed from this checkout instead of GitHub. Its effect on torch, transformers and
 numpy is checked (none), and every solution notebook (smoke mode) and the core unit tests run
-inside the environment. The environment is kept between runs and rebuilt when the files that
+inside the environment. Lesson 7 installs TRL with its own cell, as a learner's Colab session
+does, so the notebooks after it and the core tests run with what that cell upgraded, and the
+upgrade is checked to be exactly the one the cell states. The environment is kept between runs and rebuilt when the files that
 define it change; the course itself is reinstalled by the set-up cell every time.
 """
 from __future__ import annotations
@@ -37,7 +39,9 @@ VENV = ROOT / ".venv-colab"
 # hypothesis are not in Colab: they run the checks and get no say over the versions above them.
 PREINSTALLED = ["torch", "transformers", "accelerate", "datasets", "numpy", "peft", "matplotlib",
                 "safetensors", "tqdm", "tokenizers", "huggingface-hub", "sentencepiece",
-                "ipykernel", "pytest", "pip"]
+                "ipykernel", "pytest", "pip",
+                # what TRL 1.16, which lesson 7 installs, uses from Colab's runtime
+                "psutil", "jinja2", "pandas", "pyyaml"]
 TEST_TOOLS = ["nbmake==1.5.5", "hypothesis==6.170.15"]
 CPU_TORCH = "torch==2.13.0+cpu"       # the nearest CPU build to Colab's torch that installs here
 UNCHANGED = ["torch", "transformers", "numpy"]
@@ -110,6 +114,17 @@ def build_environment(tmp: Path) -> None:
     marker.write_text(key)
 
 
+def undo_trl_install() -> None:
+    """Back to Colab's state where an earlier run's lesson 7 installed TRL into the kept
+    environment: no TRL, and datasets and pyarrow at Colab's versions."""
+    have, pins = installed(), colab_pins()
+    if "trl" in have:
+        pip("uninstall", "-y", "-q", "trl")
+    stale = [f"{name}=={pins[name]}" for name in ("datasets", "pyarrow") if have.get(name) != pins[name]]
+    if stale:
+        pip("install", "-q", *stale)
+
+
 def run_setup_cell() -> None:
     """The notebooks' set-up cell, as build.py renders it, with google.colab present and the
     course's git URL pointed at this checkout."""
@@ -133,6 +148,7 @@ def colab_env(tmp_path_factory):
     if os.environ.get("COURSE_SKIP_COLAB_MIRROR") == "1":
         pytest.skip("COURSE_SKIP_COLAB_MIRROR=1")
     build_environment(tmp_path_factory.mktemp("colab"))
+    undo_trl_install()
     before = installed()
     run_setup_cell()
     return before, installed()
@@ -160,6 +176,20 @@ def test_the_setup_cell_leaves_colabs_torch_transformers_and_numpy_alone(colab_e
 
 
 def test_solution_notebooks_and_core_tests_pass_in_colabs_package_set(colab_env):
+    """Lesson 7 installs TRL in its kernel with its own cell, as in Colab; the notebooks after it
+    and the core tests then run with what that cell upgraded, and the upgrade is exactly the one
+    the cell states: TRL added, course_utils.trl_mapping.TRL_NEEDS raised to their versions,
+    nothing else changed."""
+    _, before = colab_env
+    assert "trl" not in before, "Colab has no TRL; lesson 7's install cell would not run"
     done = python("-m", "pytest", "-q", "-p", "no:cacheprovider", "notebooks/solutions", *CORE_TESTS,
                   env={**os.environ, "COURSE_SMOKE": "1", "HF_HUB_OFFLINE": "1"})
     assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-2000:]
+    sys.path.insert(0, str(ROOT))
+    from course_utils import trl_mapping
+    after = installed()
+    changed = {name: (before.get(name), after.get(name)) for name in set(before) | set(after)
+               if before.get(name) != after.get(name)}
+    expected = {"trl": (None, trl_mapping.TRL_VERSION),
+                **{name: (before[name], lowest) for name, lowest in trl_mapping.TRL_NEEDS.items()}}
+    assert changed == expected, f"lesson 7's TRL cell changed {changed}; it says {expected}"

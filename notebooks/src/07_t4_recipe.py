@@ -581,48 +581,85 @@ else:
 # `course_utils.rewards` functions have TRL's signature, so TRL's `GRPOTrainer` takes them
 # unchanged; extra dataset columns (`target_chars`, `target_digit_sum`) reach them as keyword
 # arguments. TRL adds what a bigger run needs: multi-GPU through `accelerate launch`, vLLM for
-# fast generation, DeepSpeed. The cell below trains with TRL on this lesson's configuration:
-# the same prompts, the same reward, group size, learning rate, clip range and loss
-# aggregation. Two details matter on a T4. The model is passed as an object loaded in fp32, not
-# as a name: with a name TRL loads the weights in the checkpoint's own dtype, and fp16 weights
-# under `fp16=True` make the gradient scaler refuse to unscale fp16 gradients; fp32 master
-# weights with fp16 autocast is what this course's loop does too. And `fp16` follows the
-# preset, so on a CPU (and in CI, with the tiny model) it is off and the run is fp32. Colab does
-# not ship TRL: `pip install trl==1.16.0` first (the version the course is tested with).
+# fast generation, DeepSpeed.
+#
+# Colab does not ship TRL, and the TRL version this course is tested with needs newer `datasets`
+# and `pyarrow` than Colab's runtime has. The next cell installs TRL and raises those two only
+# where they are older, to the lowest versions TRL accepts (it prints the exact command); it
+# leaves torch, transformers and numpy alone, and downgrades nothing. The Colab-mirror test
+# (`tests/test_colab_mirror.py`) runs this cell as written in Colab's package set, then the
+# course's core tests. If this session had already imported the old `datasets` or `pyarrow`,
+# the cell says so: restart the session (Runtime > Restart session) and run the notebook again.
 
 # %%
+import importlib.metadata
 import importlib.util
+import subprocess
+
+from course_utils import trl_mapping
 
 if importlib.util.find_spec("trl") is None:
-    print("Skipped: TRL is not installed. In Colab: !pip install -q trl==1.16.0, then re-run this cell.")
-else:
-    from datasets import Dataset
-    from trl import GRPOConfig, GRPOTrainer
+    specs = trl_mapping.install_specs()
+    imported_old = [name for name in ("datasets", "pyarrow") if name in sys.modules]
+    print("pip install", " ".join(specs))
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", *specs], check=True)
+    importlib.invalidate_caches()
+    if imported_old:
+        raise RuntimeError(f"TRL is installed, but this session imported the old "
+                           f"{' and '.join(imported_old)} before: restart the session "
+                           f"(Runtime > Restart session) and run the notebook again")
+print(f"TRL {importlib.metadata.version('trl')} (the table below is for TRL {trl_mapping.TRL_VERSION})")
 
-    from course_utils import data, models, rewards
+# %% [markdown]
+# Every option of this course's `Config`, and the TRL flag that does the same thing. The
+# table is `course_utils.trl_mapping.MAPPING`; `tests/test_trl_mapping.py` checks each TRL
+# name and default against TRL's own `GRPOConfig`, and that every `Config` field has a row.
+# Three TRL defaults change a run if you copy a course recipe without setting them: the loss
+# is aggregated as 'dapo' (the course's default is 'grpo'), bf16 autocast is on whenever fp16
+# is off (on a CPU too), and `use_bias_correction_kl` multiplies the k3 term by the ratio, which
+# changes the KL's gradient even on-policy (lesson 6, section 6). A fourth is the schedule: TRL
+# decays the learning rate to 0 over the run, the course holds it constant.
+# `trl_mapping.grpo_config_kwargs(cfg)` sets them all, and lists the course options TRL has no
+# flag for.
 
-    trl_tokenizer = models.load_tokenizer(cfg.model)
-    trl_model = models.load_policy(cfg.model, dtype=torch.float32, seed=cfg.seed)
-    trl_prompts = data.make_prompts(cfg, trl_tokenizer, held_out=False)[:64]
-    dataset = Dataset.from_list([{"prompt": p.text, "target_chars": p.target_chars,
-                                  "target_digit_sum": p.target_digit_sum} for p in trl_prompts])
-    args = GRPOConfig(
-        output_dir=str(Path(cfg.out_dir).with_name(Path(cfg.out_dir).name + "-trl")),
-        num_generations=cfg.group_size, per_device_train_batch_size=cfg.group_size,
-        max_completion_length=cfg.max_new_tokens, temperature=cfg.temperature,
-        learning_rate=cfg.lr, weight_decay=cfg.weight_decay, max_grad_norm=cfg.max_grad_norm,
-        beta=cfg.kl_coef, loss_type=cfg.loss_type, epsilon=cfg.clip_eps_low,
-        epsilon_high=cfg.clip_eps_high, fp16=cfg.precision == "fp16", use_cpu=not GPU,
-        max_steps=2 if SMOKE else 10, logging_steps=1, save_strategy="no", report_to="none",
-        seed=cfg.seed)
-    trainer = GRPOTrainer(model=trl_model, processing_class=trl_tokenizer, args=args,
-                          reward_funcs=[rewards.get_reward_fn(cfg.reward)], train_dataset=dataset)
-    trainer.train()
-    logged = [r for r in trainer.state.log_history if "reward" in r]
-    for record in logged:
-        print(f"TRL step {record['step']}: mean reward {record['reward']:.3f} "
-              f"(course_utils.rewards.{cfg.reward}_reward)")
-    assert trainer.state.global_step >= 1 and logged, "TRL did not train a step"
+# %%
+display(Markdown(trl_mapping.markdown_table()))
+
+# %% [markdown]
+# The cell below trains with TRL on this lesson's configuration through that mapping, one
+# prompt's group per step to keep it short: the same prompts, reward, group size, learning rate,
+# clip range, loss aggregation and precision. Two details matter on a T4. The model is passed as
+# an object loaded in fp32, not as a name: with a name TRL loads the weights in the checkpoint's
+# own dtype, and fp16 weights under `fp16=True` make the gradient scaler refuse to unscale fp16
+# gradients; fp32 master weights with fp16 autocast is what this course's loop does too. On a
+# CPU (and in CI, with the tiny model) the preset's precision is fp32, and the mapping turns
+# TRL's bf16 default off.
+
+# %%
+from datasets import Dataset
+from trl import GRPOConfig, GRPOTrainer
+
+from course_utils import data, models, rewards
+
+trl_cfg = Config.from_dict({**cfg.to_dict(), "prompts_per_step": 1, "grad_accum": 1,
+                            "max_steps": 2 if SMOKE else 10})
+trl_kwargs, left_out = trl_mapping.grpo_config_kwargs(trl_cfg, train.effective_precision(trl_cfg))
+print("TRL has no flag for:", "; ".join(left_out) if left_out else "nothing in this configuration")
+trl_tokenizer = models.load_tokenizer(cfg.model)
+trl_model = models.load_policy(cfg.model, dtype=torch.float32, seed=cfg.seed)
+trl_prompts = data.make_prompts(cfg, trl_tokenizer, held_out=False)[:64]
+dataset = Dataset.from_list([{"prompt": p.text, "target_chars": p.target_chars,
+                              "target_digit_sum": p.target_digit_sum} for p in trl_prompts])
+args = GRPOConfig(**trl_kwargs, logging_steps=1, save_strategy="no", report_to="none")
+trainer = GRPOTrainer(model=trl_model, processing_class=trl_tokenizer, args=args,
+                      reward_funcs=[rewards.get_reward_fn(cfg.reward)], train_dataset=dataset)
+trainer.train()
+logged = [r for r in trainer.state.log_history if "reward" in r]
+for record in logged:
+    print(f"TRL step {record['step']}: mean reward {record['reward']:.3f} "
+          f"(course_utils.rewards.{cfg.reward}_reward)")
+assert trainer.state.global_step >= 1 and logged, "TRL did not train a step"
+assert (args.bf16, args.fp16) == (False, cfg.precision == "fp16"), "TRL's precision is not the preset's"
 
 # %% [markdown]
 # ## Check yourself
