@@ -827,17 +827,20 @@ for k in range(UPDATES):
 # $\nabla J$. Section 4's importance weight is the correction: $\mathbb{E}_q[(\pi_\theta/q)\,R\,
 # \nabla\log\pi_\theta] = \nabla J$ wherever $q$ gives every sequence of $\pi_\theta$ some
 # probability. TRL 1.16 applies it by default when it samples with vLLM
-# (`vllm_importance_sampling_correction=True`): the ratio of the trainer's log-probabilities to
-# the sampler's, per token or per sequence (`vllm_importance_sampling_mode`), either clipped at
-# a cap $C_{\max}$ (`*_truncate`) or set to 0 above it (`*_mask`, which drops the sample). The
-# default is `sequence_mask` with $C_{\max} = 3$. A cap bounds the weights, so it trades bias for
-# variance.
+# (`vllm_importance_sampling_correction=True`): the trainer's probability over the sampler's,
+# the exponential of the difference of their log-probabilities, per token or per sequence
+# (`vllm_importance_sampling_mode`), either clipped at a cap $C_{\max}$ (`*_truncate`) or set to
+# 0 above it (`*_mask`: `token_mask` drops the offending token, `sequence_mask` the whole
+# sequence). The default is `sequence_mask` with $C_{\max} = 3$; an optional floor
+# (`vllm_importance_sampling_clip_min`, off by default) is left out here. In the sequence modes a
+# cap trades bias for variance. The token modes are biased even without one: a token's ratio is
+# not the sequence's importance weight, which is the product of all of them.
 #
 # Truncated sampling is a different problem. Under top-k or top-p the sampler's log-probabilities
 # are normalized over the tokens it kept, and it gives every other token probability 0. No weight
 # recovers what is never sampled, so the corrected estimate targets neither $\nabla J$ nor the
-# gradient of the objective the sampler actually optimizes, $J_q = \mathbb{E}_q[R]$, whose
-# gradient needs the scores of $q$ itself, $\nabla\log q$.
+# gradient of the truncated sampler's own expected reward, $J_q = \mathbb{E}_q[R]$, which needs
+# the scores of $q$ itself, $\nabla\log q$.
 #
 # ### Exercise 4.5 — TRL's importance weights
 #
@@ -846,7 +849,8 @@ for k in range(UPDATES):
 # $\pi_{\text{train}}/\pi_{\text{sampler}}$ of each token (`mode` `token_truncate` or `token_mask`), or
 # of the whole sequence over its real tokens, repeated on each of them (`sequence_truncate`,
 # `sequence_mask`); clipped at `clip_max` (`*_truncate`) or set to 0 where it exceeds `clip_max`
-# (`*_mask`). The weights are constants, and 0 on padding.
+# (`*_mask`); `clip_max` may be `inf` (no cap). The weights are constants, and 0 on padding (TRL's
+# tensor holds 1 there and its loss mask removes it; 0 makes padding's weight explicit).
 
 # %%
 def importance_weights(logp_train, logp_sampler, mask, mode, clip_max):
@@ -859,10 +863,14 @@ exercises.check_importance_weights(importance_weights)
 # %% [markdown]
 # The cell measures, exactly, what each estimator's expectation is and how noisy one sample's
 # gradient is (the trace of its covariance), on a three-token policy over four symbols, for
-# three samplers: the trainer's weights one update behind (a stale sampler, as in asynchronous
-# training), the logits rounded to bf16, and top-2 sampling. The bias is relative to the length
-# of the target gradient: $\nabla J$, and for top-2 also $\nabla J_q$. "Full weight" is the
-# uncapped sequence ratio; the TRL modes use your weights with $C_{\max} = 3$.
+# three samplers: weights that lag the trainer's (a random perturbation of $\theta$ standing for
+# the lag of asynchronous training), the logits rounded to bf16, and top-2 sampling. The first is
+# a hypothetical for TRL 1.16: its GRPOTrainer loads the trainer's weights into vLLM before each
+# generation, so its vLLM ratio sees only the engines' and precisions' differences, and drift after
+# generation goes through the PPO ratio and its clip (section 5). The bias is relative to the
+# length of the target gradient: $\nabla J$, and for top-2 also $\nabla J_q$. "Full weight" is
+# the uncapped sequence ratio; the TRL modes use your weights with $C_{\max} = 3$, and "token,
+# no cap" the per-token ratio without one.
 
 # %%
 from course_utils import mismatch  # noqa: E402
@@ -876,7 +884,7 @@ logp_train = mm_policy.token_log_probs(mm_theta)
 ones = torch.ones_like(logp_train)
 grad_J = trust.exact_gradient(mm_policy.log_probs, mm_theta, mm_reward)
 stale = mm_theta + 0.5 * torch.randn(mm_policy.n_params, generator=torch.Generator().manual_seed(1))
-samplers = {"weights one update behind": mm_policy.token_log_probs(stale),
+samplers = {"lagging weights": mm_policy.token_log_probs(stale),
             "logits rounded to bf16": mismatch.token_log_probs(mismatch.rounded_table(mm_theta, mm_policy), mm_policy),
             "top-2 sampling": mismatch.token_log_probs(mismatch.truncated_table(mm_theta, mm_policy, 2), mm_policy)}
 top2 = lambda th: mismatch.truncated_table(th, mm_policy, 2)   # noqa: E731  (the sampler, as a function of theta)
@@ -894,6 +902,7 @@ for sampler, logp_sampler in samplers.items():
     finite = torch.where(torch.isfinite(logp_sampler), logp_sampler, 0.0)   # the weights' input, on the support
     weights = {"none": None, "full weight": importance_weights(logp_train, finite, ones, "sequence_truncate", float("inf"))}
     weights.update({mode: importance_weights(logp_train, finite, ones, mode, 3.0) for mode in mismatch.MODES})
+    weights["token, no cap"] = importance_weights(logp_train, finite, ones, "token_truncate", float("inf"))
     print(sampler)
     for label, w in weights.items():
         mean, variance = mismatch.gradient_moments(mm_policy, mm_theta, logp_sampler, mm_reward, w)
@@ -906,14 +915,22 @@ mismatch_results["top-2 sampling", "scored under q"] = (relative(mean, grad_J), 
 print(f"   {'scored under q':18s}: bias vs grad J_q {relative(mean, grad_J_q):.1e}; variance {variance:.3f}")
 
 # what the text below says, on these numbers
-for sampler in ("weights one update behind", "logits rounded to bf16"):
+for sampler in ("lagging weights", "logits rounded to bf16"):
     assert mismatch_results[sampler, "full weight"][0] < 1e-10                     # the full weight is exact
     assert mismatch_results[sampler, "none"][0] > 2 * mismatch_results[sampler, "sequence_truncate"][0]
-stale_runs = {k: v for (s, k), v in mismatch_results.items() if s == "weights one update behind"}
+stale_runs = {k: v for (s, k), v in mismatch_results.items() if s == "lagging weights"}
 assert stale_runs["full weight"][2] > stale_runs["sequence_truncate"][2] > stale_runs["none"][2]   # the cap's trade
+assert stale_runs["sequence_truncate"][0] < 0.25 * stale_runs["none"][0]                  # removes most of it
+assert stale_runs["sequence_mask"][0] > 0.3 * stale_runs["none"][0]                       # the default leaves much
+p_pi, p_q = logp_train.sum(-1).exp(), samplers["lagging weights"].sum(-1).exp()          # every sequence
+dropped = p_pi / p_q > 3.0                                                                # what sequence_mask drops
+assert p_q[dropped].sum() < 0.5 * p_pi[dropped].sum()              # rare under the sampler, not under the policy
+for mode in ("token_truncate", "token_mask", "token, no cap"):
+    assert stale_runs[mode][0] > 2 * stale_runs["sequence_truncate"][0]                   # token modes: more left
+assert stale_runs["token, no cap"][0] > 0.3 * stale_runs["none"][0]                       # biased with no cap too
 bf16_runs = {k: v for (s, k), v in mismatch_results.items() if s == "logits rounded to bf16"}
 for mode in mismatch.MODES:
-    assert stale_runs["full weight"][2] > stale_runs[mode][2] and stale_runs[mode][0] > 0.01   # between
+    assert stale_runs["full weight"][2] > stale_runs[mode][2] and stale_runs[mode][0] > 0.01   # capped: bias left
     assert bf16_runs[mode][0] < 0.5 * bf16_runs["none"][0]                                     # most of it
     assert abs(bf16_runs[mode][2] / bf16_runs["none"][2] - 1) < 0.01                           # no variance cost
     assert min(mismatch_results["top-2 sampling", mode][:2]) > 0.1                             # neither target
@@ -923,9 +940,12 @@ assert mismatch_results["top-2 sampling", "scored under q"][1] < 1e-10
 torch.set_default_dtype(torch.float32)
 
 # %% [markdown]
-# Read the rows sampler by sampler. One update behind, the uncorrected gradient is far from
-# $\nabla J$; the full sequence weight removes the bias exactly and pays for it in variance; the
-# capped weights sit between, with less variance than the full weight and some bias left. With
+# Read the rows sampler by sampler. With lagging weights, the uncorrected gradient is far from
+# $\nabla J$; the full sequence weight removes the bias exactly and pays for it in variance. Every
+# capped mode has less variance than the full weight and leaves bias, in different amounts:
+# `sequence_truncate` removes most of it, TRL's default `sequence_mask` leaves much of it (the
+# sequences it drops are rare under the sampler but not under the policy), and the token modes
+# leave more still, with or without a cap, since a per-token ratio is not the sequence's weight. With
 # bf16 logits the mismatch is small, the uncorrected bias small too, and every correction
 # removes most of it at almost no variance (the ratios stay near 1, so the cap never binds).
 # Top-2 sampling is different in kind: every weight is below 1 there (the sampler renormalized

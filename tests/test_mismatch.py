@@ -124,3 +124,33 @@ def test_importance_weights_checker_names_each_mistake(kind, diagnosis):
 
 def test_the_fixture_with_no_mistake_is_accepted():
     check_importance_weights(_wrong("none"))
+
+
+def weights_with_a_float32_cap(logp_train, logp_sampler, mask, mode, clip_max):
+    """Correct: the cap as a float32 tensor (1.7 is 1.70000005 there), in log space for masks."""
+    log_ratio = ((logp_train - logp_sampler) * mask).detach()
+    if mode.startswith("sequence"):
+        log_ratio = log_ratio.sum(-1, keepdim=True).expand_as(mask)
+    ratio = log_ratio.exp()
+    cap = torch.tensor(clip_max, dtype=torch.float32)
+    if mode.endswith("truncate"):
+        return torch.minimum(ratio, cap) * mask
+    return torch.where(log_ratio > torch.log(cap.double()), 0.0, ratio) * mask
+
+
+def weights_by_arithmetic(logp_train, logp_sampler, mask, mode, clip_max):
+    """Wrong only without a cap: cap * (ratio > cap) is inf * 0 = NaN when clip_max is inf."""
+    log_ratio = ((logp_train - logp_sampler) * mask).detach()
+    if mode.startswith("sequence"):
+        log_ratio = log_ratio.sum(-1, keepdim=True).expand_as(mask)
+    ratio = log_ratio.exp()
+    over = (ratio > clip_max).to(ratio.dtype)
+    ratio = ratio * (1 - over) + clip_max * over if mode.endswith("truncate") else ratio * (1 - over)
+    return ratio * mask
+
+
+def test_a_float32_cap_is_accepted_and_nan_arithmetic_without_a_cap_is_named():
+    torch.set_default_dtype(torch.float32)     # as in the lesson when the checker runs
+    check_importance_weights(weights_with_a_float32_cap)
+    with pytest.raises(ExerciseError, match=r"NaN or inf weights on .*clip_max inf"):
+        check_importance_weights(weights_by_arithmetic)
