@@ -315,8 +315,9 @@ def _cuda_capability() -> tuple[int, int] | None:
 # Presets are data: overrides on top of the defaults above.
 PRESETS: dict[str, dict[str, Any]] = {
     # The seed's recipe on a free Colab T4, corrected per the errata (per-prompt groups). Sized
-    # by course_utils.plan: micro-batches of 2 prompts x 8 completions keep the peak near 12 GiB
-    # of the T4's 15; 10,240 prompts are ~1.3 h at the plan's rate, a 2x margin on its
+    # by course_utils.plan: micro-batches of one prompt's 8 completions keep the allocator's planned
+    # peak near 11 GiB of the 13.75 GiB a T4 leaves it, a headroom wider than the plan's 15% error
+    # (two prompts per micro-batch would leave 8%); 10,240 prompts are ~1.4 h at the plan's rate, a 2x margin on its
     # assumptions inside a 3-hour session (lesson 7 prints the arithmetic). It carries what
     # lesson 7's ablation kept: the shaped reward (with the binary one, groups that all fail
     # give no gradient at the start). Not dynamic sampling: a version capped at two rounds left
@@ -330,7 +331,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # (kl_coef=0.04, DeepSeekMath's) if distinct completions collapse or the language degrades.
     "t4": dict(model="Qwen/Qwen2.5-0.5B-Instruct", prompt_source="openwebtext", prompt_tokens=128,
                target_chars=64, reward="shaped", prompts_per_step=16,
-               group_size=8, grad_accum=8, max_new_tokens=64, lr=1e-5, weight_decay=0.01,
+               group_size=8, grad_accum=16, max_new_tokens=64, lr=1e-5, weight_decay=0.01,
                max_grad_norm=1.0, kl_coef=0.0, precision="fp16", gradient_checkpointing=True,
                train_prompts=10240, epochs=1, eval_prompts=100, save_every=25, out_dir="runs/t4"),
     # The seed's CS-student variant: a base model, so the rule is fixed rather than stated.

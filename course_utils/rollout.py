@@ -20,6 +20,11 @@ from .logprobs import body_and_head, output_layer_logprobs
 from .losses import token_entropy
 
 
+class NonFiniteLogits(FloatingPointError):
+    """The sampler met NaN or inf logits (fp16 overflow, usually): ``torch.multinomial`` would
+    crash on them and argmax would pick garbage, so sampling stops and says so."""
+
+
 @dataclass
 class Rollout:
     prompt_ids: torch.Tensor       # [N, P] left-padded prompt tokens (each prompt repeated G times)
@@ -119,7 +124,8 @@ def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_
     The prompt is prefilled once per *prompt* and its cache repeated G times (exact: the G
     copies see identical keys and values). Only the last prompt position's logits are
     computed. Log-probabilities are those of the tempered distribution actually sampled from;
-    for ``greedy`` they are of the untempered distribution.
+    for ``greedy`` they are of the untempered distribution. NaN or inf logits raise
+    ``NonFiniteLogits`` (the training loop skips that step and counts it).
     """
     positions = _positions(prompt_mask)
     out = model(input_ids=prompt_ids, attention_mask=prompt_mask, position_ids=positions,
@@ -137,6 +143,8 @@ def sample(model, prompt_ids: torch.Tensor, prompt_mask: torch.Tensor, *, group_
     live = torch.arange(n, device=logits.device)   # rows still being decoded
     tokens, token_logprobs = [], []
     for _ in range(max_new_tokens):
+        if not torch.isfinite(logits).all():
+            raise NonFiniteLogits(f"non-finite logits (NaN or inf) while sampling token {len(tokens) + 1}")
         logp = F.log_softmax(logits if greedy or temperature == 1 else logits / temperature, dim=-1)
         if greedy:
             token = logp.argmax(-1)

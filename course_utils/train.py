@@ -34,7 +34,7 @@ import torch
 
 from . import checkpoint, cpu, curriculum, data, interrupt, losses, models, plan, rewards
 from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
-from .rollout import completion_logprobs, concat_rollouts, rollout
+from .rollout import NonFiniteLogits, completion_logprobs, concat_rollouts, rollout
 
 
 class RewardError(ValueError):
@@ -100,14 +100,20 @@ def evaluate(model, tokenizer, prompts: list[data.Prompt], cfg: Config, eos_ids:
     move the training random stream.
     """
     generator = torch.Generator(device=next(model.parameters()).device).manual_seed(cfg.seed + 12345)
-    texts = []
+    texts, unscored = [], 0
     for start in range(0, len(prompts), batch_size):
         chunk = prompts[start:start + batch_size]
-        out = rollout(model, tokenizer, [p.text for p in chunk], group_size=1,
-                      max_new_tokens=cfg.max_new_tokens, eos_ids=eos_ids,
-                      temperature=cfg.temperature, greedy=greedy, generator=generator,
-                      fast=cfg.fast_kernels)
-        texts.extend(out.texts)
+        try:
+            out = rollout(model, tokenizer, [p.text for p in chunk], group_size=1,
+                          max_new_tokens=cfg.max_new_tokens, eos_ids=eos_ids,
+                          temperature=cfg.temperature, greedy=greedy, generator=generator,
+                          fast=cfg.fast_kernels)
+            texts.extend(out.texts)
+        except NonFiniteLogits as err:   # fp16 overflow: these prompts count as failed, and say so
+            unscored += len(chunk)
+            texts.extend([""] * len(chunk))
+            print(f"[course_utils] evaluation: {err}; {len(chunk)} prompts counted as failed "
+                  f"({unscored} so far). If it repeats, evaluate with precision='fp32'.")
     s = score(prompts, texts, cfg.reward)
     checks = [rewards.check(t, p.target_chars, p.target_digit_sum) for t, p in zip(texts, prompts)]
     # A one-digit target can be met by copying it from the instruction; a two-digit one (10-12
@@ -122,7 +128,7 @@ def evaluate(model, tokenizer, prompts: list[data.Prompt], cfg: Config, eos_ids:
         # a policy that writes one template for every snippet passes the checker without
         # continuing the text; the checker cannot see that, this count can
         distinct_completions=len(set(texts)), distinct_snippets=len({p.snippet for p in prompts}),
-        chars_abs_error=float(s["chars_abs_error"].mean()),
+        chars_abs_error=float(s["chars_abs_error"].mean()), nonfinite_unscored=unscored,
         samples=[dict(snippet=p.snippet[-60:], target_chars=p.target_chars,
                       target_digit_sum=p.target_digit_sum, completion=t, n_chars=c.n_chars,
                       digit_sum=c.digit_sum) for p, t, c in zip(prompts, texts, checks)],
@@ -167,6 +173,20 @@ def sampling_model(policy: Policy):
         return policy.model
     policy.sampler.load_state_dict(policy.accelerator.unwrap_model(policy.model).state_dict())
     return policy.sampler
+
+
+def _skipped_sampling(policy: Policy, err: Exception, timer: "PhaseTimer", t0: float) -> dict:
+    """A step whose sampler met NaN or inf logits: nothing to score or train on, so no update;
+    the step is counted like a skipped update and the schedule moves on, as it does for one.
+    Its metrics record holds what is known (the sampled quantities are absent: plots skip them)."""
+    _skip_update(policy, f"logits in sampling ({err})")
+    policy.model.eval()
+    policy.scheduler.step()
+    elapsed = time.perf_counter() - t0
+    return dict(nonfinite_skipped=policy.counters["nonfinite_skipped"], sampling_skipped=1,
+                lr=policy.scheduler.get_last_lr()[0], gen_time=timer.seconds["generation"],
+                train_time=elapsed - timer.seconds["generation"], step_time=elapsed,
+                **{f"time_{phase}": sec for phase, sec in timer.seconds.items()})
 
 
 def _skip_update(policy: Policy, what: str) -> None:
@@ -297,7 +317,17 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     timer = PhaseTimer()
     t0 = time.perf_counter()
     with timer("generation"):
-        ro, local, groups_sampled, rounds, first_pass = sample_batch(policy, local, refill)
+        try:
+            sampled = sample_batch(policy, local, refill)
+        except NonFiniteLogits as err:
+            sampled, sampling_error = None, err
+    if W > 1:  # every process must agree to skip (a step that others train would hang)
+        agreed = acc.reduce(torch.tensor(float(sampled is not None), device=acc.device), "sum") == W
+        if sampled is not None and not agreed:
+            sampled, sampling_error = None, NonFiniteLogits("another process's sampler met non-finite logits")
+    if sampled is None:
+        return _skipped_sampling(policy, sampling_error, timer, t0)
+    ro, local, groups_sampled, rounds, first_pass = sampled
     with timer("scoring"):
         s = score([p for p in local for _ in range(G)], ro.texts, cfg.reward)
         s["truncated"] = ro.truncated.float().cpu()
@@ -417,6 +447,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
         adv_abs_mean=float(advantages.abs().mean()), zero_std_frac=zero_std / len(prompts),
         groups_sampled=groups_sampled * W, sampling_rounds=rounds, first_round_pass_both=first_pass,
         distinct_frac=len(set(ro.texts)) / len(ro.texts),
+        prompt_len_max=int(ro.prompt_mask.sum(-1).max()),   # tokens, template included
         entropy_weight=ent_weight, kl_coef=beta, completion_tokens=float(lengths.mean()),
         truncated_frac=float(s["truncated"].mean()), empty_frac=float(s["empty"].mean()),
         loss=loss_total, grad_norm=grad_norm,
@@ -786,8 +817,9 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
             record.update({f"eval_{k}": v for k, v in ev.items() if k != "samples"})
         if main:
             log.append(record)
-        bar.set_postfix(reward=f"{metrics['reward_mean']:.3f}", len_ok=f"{metrics['pass_length']:.2f}",
-                        both=f"{metrics['pass_both']:.2f}")
+        if "reward_mean" in metrics:   # absent from a step skipped for non-finite sampling logits
+            bar.set_postfix(reward=f"{metrics['reward_mean']:.3f}", len_ok=f"{metrics['pass_length']:.2f}",
+                            both=f"{metrics['pass_both']:.2f}")
         saved = (step + 1) % cfg.save_every == 0 or step + 1 == total
         if saved:
             _save(run_dir, policy, step + 1)

@@ -81,6 +81,20 @@ def cpu_results_markdown() -> str:
     return "\n".join(parts)
 
 
+def gpu_check_markdown() -> str:
+    """benchmarks/gpu_check.py's stored GPU result, or a plain statement that there is none."""
+    stored = RESULTS / "gpu-check.json"
+    if not stored.exists():
+        return ("*`benchmarks/gpu_check.py` has not run on a GPU yet: no result is stored in "
+                "`notebooks/results/gpu-check.json`, so nothing above has been measured on one.*")
+    sys.path.insert(0, str(HERE.parent / "benchmarks"))
+    from gpu_check import report
+
+    return ("`benchmarks/gpu_check.py`'s stored result (`notebooks/results/gpu-check.json`), on a GPU "
+            "emulating a T4's limits; it measures memory and the fp16 code path, not a T4's speed:"
+            "\n\n```text\n" + report(json.loads(stored.read_text())) + "\n```\n")
+
+
 def track_results_markdown(name: str) -> str:
     """A learner track's stored real CPU result (``python -m course_utils.tracks``), with its plot."""
     folder = RESULTS / "tracks" / name
@@ -202,6 +216,8 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, f"TRACK_RESULTS:{name}", track_results_markdown(name))
     if "{{CPU_RESULTS}}" in text:
         text = fill_markdown(text, "CPU_RESULTS", cpu_results_markdown())
+    if "{{GPU_CHECK}}" in text:
+        text = fill_markdown(text, "GPU_CHECK", gpu_check_markdown())
     if "{{DIAGNOSIS}}" in text:
         text = fill_markdown(text, "DIAGNOSIS", diagnosis_markdown())
     if "{{ABLATION_RESULTS}}" in text:

@@ -76,12 +76,13 @@ def plan_figures() -> dict[str, str]:
     from course_utils.config import PRESETS, Config
 
     arch, t4 = plan.QWEN25_05B, Config.from_dict(PRESETS["t4"])
-    prompt_len = 128 + 45          # as in the lesson's cell: snippet + template and instruction
+    prompt_len = plan.qwen25_prompt_len(t4)   # as in the lesson's cell
     persistent = 4 + 4 + 8 + 2     # fp32 weight, gradient, AdamW's two moments, fp16 copy
-    accum4 = Config.from_dict({**PRESETS["t4"], "grad_accum": 4})
-    mem4 = plan.memory_plan(arch, accum4, prompt_len, t4.max_new_tokens)
+    accum8 = Config.from_dict({**PRESETS["t4"], "grad_accum": 8})
+    mem8 = plan.memory_plan(arch, accum8, prompt_len, t4.max_new_tokens)
     mem = plan.memory_plan(arch, t4, prompt_len, t4.max_new_tokens)
     timing = plan.time_plan(arch, t4, prompt_len, t4.max_new_tokens)
+    room = lambda m: f"{1 - plan.reserved_bytes(m) / plan.T4.reservable_bytes:.0%}"
     return {
         "plan.bytes_per_param": f"{persistent}",
         "plan.params_m": f"{arch.n_params / 1e6:.0f}M",
@@ -91,10 +92,17 @@ def plan_figures() -> dict[str, str]:
         "plan.t4_prompts": f"{t4.train_prompts:,}",
         "plan.t4_steps": f"{t4.total_steps}",
         "plan.t4_hours": f"{timing['run hours']:.1f}",
-        "plan.t4_peak_gib": f"{plan.peak_bytes(mem) / plan.GiB:.0f}",
-        "plan.accum4_logits_gib": f"{mem4['logits (completion positions)'] / plan.GiB:.1f}",
-        "plan.accum4_peak_gib": f"{plan.peak_bytes(mem4) / plan.GiB:.2f}",
-        "plan.t4_usable_gib": f"{plan.T4.memory_gib:.1f}",
+        "plan.t4_total_gib": f"{plan.T4.total_memory_gib:.2f}",
+        "plan.t4_outside_gib": f"{plan.T4.outside_allocator_gib:.1f}",
+        "plan.t4_reservable_gib": f"{plan.T4.reservable_bytes / plan.GiB:.2f}",
+        "plan.t4_cache_pct": f"{plan.T4.allocator_cache:.0%}",
+        "plan.t4_snippet_tokens": f"{t4.prompt_tokens}",
+        "plan.t4_frame_tokens": f"{prompt_len - t4.prompt_tokens}",
+        "plan.t4_reserved_gib": f"{plan.reserved_bytes(mem) / plan.GiB:.1f}",
+        "plan.t4_headroom_pct": room(mem),
+        "plan.accum8_logits_gib": f"{mem8['logits (completion positions)'] / plan.GiB:.1f}",
+        "plan.accum8_reserved_gib": f"{plan.reserved_bytes(mem8) / plan.GiB:.1f}",
+        "plan.accum8_headroom_pct": room(mem8),
         "plan.lora16_params_m": f"{arch.lora_params(16) / 1e6:.1f}M",
     }
 

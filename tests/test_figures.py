@@ -334,6 +334,7 @@ def test_the_readmes_presets_table_matches_the_config():
         cfg = Config.from_dict(PRESETS[name])
         assert f"{cfg.prompt_tokens} tokens" in rows[name], (name, cfg.prompt_tokens)
     t4, gpt2 = Config.from_dict(PRESETS["t4"]), Config.from_dict(PRESETS["gpt2-rtx4070"])
-    assert f"micro-batches of {t4.prompts_per_step // t4.grad_accum} prompts x {t4.group_size}" in rows["t4"]
+    per_micro = t4.prompts_per_step // t4.grad_accum
+    assert f"micro-batches of {per_micro} prompt{'s' * (per_micro > 1)} x {t4.group_size}" in rows["t4"]
     assert f"{t4.total_steps * t4.prompts_per_step:,} prompts" in rows["t4"]
     assert f"{gpt2.target_chars}-character target, batch {gpt2.prompts_per_step}" in rows["gpt2-rtx4070"]

