@@ -61,6 +61,44 @@ def emulate_t4() -> dict:
                 tf32=False, bf16=False)
 
 
+def probe_allocator_cap(cap_bytes: float) -> dict:
+    """Does the cap bound what the allocator reserves? One block a quarter GiB past what is left
+    under the cap must be refused, one a quarter GiB short of it granted."""
+    def fits(nbytes: float) -> bool:
+        try:
+            block = torch.empty(int(nbytes), dtype=torch.uint8, device="cuda")
+            del block
+            return True
+        except torch.OutOfMemoryError:
+            return False
+        finally:
+            torch.cuda.empty_cache()
+    left = cap_bytes - torch.cuda.memory_reserved()
+    return dict(refused_past_cap=not fits(left + GiB / 4), granted_under_cap=fits(left - GiB / 4))
+
+
+def probe_autocast_copies(policy) -> dict:
+    """What accelerate's fp16 autocast holds during one forward of the prepared model (no_grad,
+    as sampling runs) and after it. The plan counts fp16 copies of every weight, 2P bytes, alive
+    for the whole forward (autocast's cast cache) and made again at every call, so a decoding
+    step reads 4P and writes and reads 2P."""
+    model, device = policy.model, policy.accelerator.device
+    ids = torch.ones(1, 1, dtype=torch.long, device=device)
+    P = sum(p.numel() for p in model.parameters())
+    extra, left = [], []
+    for _ in range(2):   # twice: a cache that outlived the call would show in the second
+        torch.cuda.synchronize()
+        base = torch.cuda.memory_allocated()
+        torch.cuda.reset_peak_memory_stats()
+        with torch.no_grad():
+            out = model(input_ids=ids).logits
+        del out
+        torch.cuda.synchronize()
+        extra.append((torch.cuda.max_memory_allocated() - base) / GiB)
+        left.append((torch.cuda.memory_allocated() - base) / GiB)
+    return dict(planned_copies_gib=2 * P / GiB, forward_extra_gib=extra, held_after_gib=left)
+
+
 def full_length_prompts(cfg, tokenizer, count: int) -> list[data.Prompt]:
     """The preset's prompts from the offline snippets, each snippet extended with the next ones
     until it has ``cfg.prompt_tokens`` tokens (the offline snippets are shorter than the t4
@@ -77,7 +115,7 @@ def full_length_prompts(cfg, tokenizer, count: int) -> list[data.Prompt]:
     return prompts
 
 
-def config(smoke: bool, model: str, on_gpu: bool):
+def config(smoke: bool, model: str, on_gpu: bool, grad_accum: int | None = None):
     if smoke:   # the same code path, shrunk to seconds on a CPU (CI)
         return load_config("t4", model=models.TINY, prompt_source="offline", precision="fp32",
                            prompt_tokens=16, target_chars=48, prompts_per_step=2, group_size=4,
@@ -85,7 +123,8 @@ def config(smoke: bool, model: str, on_gpu: bool):
                            out_dir="/tmp/gpu-check-unused",
                            **({} if on_gpu else dict(device="cpu")))
     return load_config("t4", model=model, prompt_source="offline", train_prompts=10 * 16,
-                       eval_prompts=2, out_dir="/tmp/gpu-check-unused")
+                       eval_prompts=2, out_dir="/tmp/gpu-check-unused",
+                       **({} if grad_accum is None else dict(grad_accum=grad_accum)))
 
 
 def scaler_scale(policy) -> float | None:
@@ -99,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="tiny model, fp32, 2 steps: runs anywhere")
     parser.add_argument("--model", default=models.QWEN25_SHAPED,
                         help="Qwen/Qwen2.5-0.5B-Instruct to use the real weights (needs the hub)")
+    parser.add_argument("--grad_accum", type=int, default=None,
+                        help="micro-batches per step (default: the t4 preset's), to test the plan at another point")
     parser.add_argument("--out", default=None, help="write the result as JSON here")
     args = parser.parse_args(argv)
     on_gpu = torch.cuda.is_available()
@@ -108,10 +149,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     steps = 2 if args.smoke else args.steps
     emulation = emulate_t4() if on_gpu else dict(gpu=None, note="CPU: no emulation, fp32")
-    cfg = config(args.smoke, args.model, on_gpu)
+    cfg = config(args.smoke, args.model, on_gpu, args.grad_accum)
+    probes = {}
+    if on_gpu:
+        probes["allocator_cap"] = probe_allocator_cap(emulation["allocator_cap_gib"] * GiB)
     t0 = time.perf_counter()
     policy = train.setup(cfg)
     setup_s = time.perf_counter() - t0
+    if on_gpu and cfg.precision != "fp32":
+        probes["autocast_copies"] = probe_autocast_copies(policy)
     prompts = full_length_prompts(cfg, policy.tokenizer, (steps + 1) * cfg.prompts_per_step)
     records, scales = [], []
     if on_gpu:
@@ -148,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
         completion_tokens=[r.get("completion_tokens") for r in records],
         nonfinite_skipped=records[-1]["nonfinite_skipped"],
         scaler_scale=scales,
+        scaler=type(getattr(policy.accelerator, "scaler", None)).__name__,
+        probes=probes,
     )
     print(report(result))
     if args.out:
@@ -172,11 +220,24 @@ def report(result: dict) -> str:
     else:
         lines.append(f"  resident peak {m['resident_gib']:.2f} GiB; plan {p['process_gib']:.2f} GiB "
                      f"(CPU probe overheads)")
+    probes = result.get("probes", {})
+    if "allocator_cap" in probes:
+        c = probes["allocator_cap"]
+        lines.append(f"  the cap bounds the allocator: a block past it refused {c['refused_past_cap']}, "
+                     f"one under it granted {c['granted_under_cap']}")
+    if "autocast_copies" in probes:
+        a = probes["autocast_copies"]
+        lines.append(f"  autocast's weight copies in one sampling forward: "
+                     f"{', '.join(f'{x:.2f}' for x in a['forward_extra_gib'])} GiB (plan 2P = "
+                     f"{a['planned_copies_gib']:.2f} GiB), held after it "
+                     f"{', '.join(f'{x:.2f}' for x in a['held_after_gib'])} GiB")
     med = statistics.median
     lines.append(f"  seconds per step (median of {result['steps']}): {med(result['step_seconds']):.2f} "
                  "(" + ", ".join(f"{k} {med(v):.2f}" for k, v in result["phase_seconds"].items()) + ")"
                  f"; a T4 by the plan: {p['seconds_per_step_t4']:.1f}")
-    lines.append(f"  non-finite skips: {result['nonfinite_skipped']}; gradient scaler's scale per step: "
+    scaler = result.get("scaler", "NoneType")
+    lines.append(f"  non-finite skips: {result['nonfinite_skipped']}; gradient scaler"
+                 f"{'' if scaler == 'NoneType' else f' ({scaler})'}'s scale per step: "
                  + ("none (no fp16)" if result["scaler_scale"][0] is None
                     else ", ".join(f"{s:g}" for s in result["scaler_scale"])))
     return "\n".join(lines)

@@ -82,17 +82,19 @@ def cpu_results_markdown() -> str:
 
 
 def gpu_check_markdown() -> str:
-    """benchmarks/gpu_check.py's stored GPU result, or a plain statement that there is none."""
-    stored = RESULTS / "gpu-check.json"
-    if not stored.exists():
+    """benchmarks/gpu_check.py's stored GPU results (the t4 preset, then grad_accum 8 if stored),
+    or a plain statement that there are none."""
+    stored = [RESULTS / name for name in ("gpu-check.json", "gpu-check-grad-accum-8.json")]
+    if not stored[0].exists():
         return ("*`benchmarks/gpu_check.py` has not run on a GPU yet: no result is stored in "
                 "`notebooks/results/gpu-check.json`, so nothing above has been measured on one.*")
     sys.path.insert(0, str(HERE.parent / "benchmarks"))
     from gpu_check import report
 
-    return ("`benchmarks/gpu_check.py`'s stored result (`notebooks/results/gpu-check.json`), on a GPU "
-            "emulating a T4's limits; it measures memory and the fp16 code path, not a T4's speed:"
-            "\n\n```text\n" + report(json.loads(stored.read_text())) + "\n```\n")
+    reports = "\n\n".join(report(json.loads(path.read_text())) for path in stored if path.exists())
+    return ("`benchmarks/gpu_check.py`'s stored results (`notebooks/results/gpu-check*.json`), on a "
+            "GPU emulating a T4's limits; they measure memory and the fp16 code path, not a T4's "
+            "speed:\n\n```text\n" + reports + "\n```\n")
 
 
 def track_results_markdown(name: str) -> str:

@@ -107,6 +107,42 @@ def plan_figures() -> dict[str, str]:
     }
 
 
+def gpu_check_figures() -> dict[str, str]:
+    """Lesson 7, section 4: benchmarks/gpu_check.py's stored runs on a GPU emulating a T4, at the
+    t4 preset (grad_accum 16) and with twice the rows per micro-batch (grad_accum 8)."""
+    out = {}
+    for prefix, name in (("gpu", "gpu-check.json"), ("gpu.accum8", "gpu-check-grad-accum-8.json")):
+        r = _json(name)
+        m, p = r["measured"], r["planned"]
+        out.update({
+            f"{prefix}.reserved_gib": f"{m['reserved_gib']:.2f}",
+            f"{prefix}.plan_reserved_gib": f"{p['reserved_gib']:.2f}",
+            f"{prefix}.reserved_vs_plan": f"{m['reserved_gib'] / p['reserved_gib'] - 1:+.1%}",
+            f"{prefix}.allocated_gib": f"{m['allocated_gib']:.2f}",
+            f"{prefix}.plan_tensors_gib": f"{p['tensors_gib']:.2f}",
+            f"{prefix}.allocated_vs_plan": f"{m['allocated_gib'] / p['tensors_gib'] - 1:+.1%}",
+            f"{prefix}.cache_pct": f"{m['allocator_cache']:.0%}",
+            f"{prefix}.rows": f"{r['micro_batch_rows']}",
+        })
+    r = _json("gpu-check.json")
+    copies = r["probes"]["autocast_copies"]
+    out.update({
+        "gpu.name": r["emulation"]["gpu"],
+        "gpu.cap_gib": f"{r['emulation']['allocator_cap_gib']:.2f}",
+        "gpu.outside_gib": f"{r['measured']['outside_allocator_gib']:.2f}",
+        "gpu.steps": _word(r["steps"]),
+        "gpu.prompt_len": f"{r['prompt_len']}",
+        "gpu.copies_gib": " and ".join(f"{x:.2f}" for x in copies["forward_extra_gib"]),
+        "gpu.plan_copies_gib": f"{copies['planned_copies_gib']:.2f}",
+        "gpu.copies_held_after_gib": f"{max(copies['held_after_gib']):.2f}",
+        "gpu.step_s": f"{statistics.median(r['step_seconds']):.1f}",
+        "gpu.plan_t4_step_s": f"{r['planned']['seconds_per_step_t4']:.1f}",
+        "gpu.nonfinite_skipped": _word(r["nonfinite_skipped"]),
+        "gpu.scaler_scale": " and ".join(f"{s:g}" for s in sorted(set(r["scaler_scale"]))),
+    })
+    return out
+
+
 def track_figures() -> dict[str, str]:
     """Lesson 8: the learner tracks' stored results (``python -m course_utils.tracks all``)."""
     from course_utils.config import PRESETS, Config
@@ -316,7 +352,7 @@ def data_figures() -> dict[str, str]:
 
 
 def figures() -> dict[str, str]:
-    return {**plan_figures(), **track_figures(), **cpu_run_figures(), **data_figures()}
+    return {**plan_figures(), **gpu_check_figures(), **track_figures(), **cpu_run_figures(), **data_figures()}
 
 
 def fill(text: str, source: str) -> str:

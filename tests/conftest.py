@@ -1,3 +1,12 @@
+import os
+
+# The unit tests are the CPU's contract (CI and the README's install have no GPU), and their
+# bitwise and exact-equality checks hold on the CPU: on a machine with a GPU they still run on
+# the CPU. The GPU path is checked by benchmarks/gpu_check.py; COURSE_TEST_GPU=1 keeps the GPU
+# visible to the tests. (Set before torch can initialise CUDA; subprocesses inherit it.)
+if os.environ.get("COURSE_TEST_GPU") != "1":
+    os.environ["CUDA_VISIBLE_DEVICES"] = ""
+
 import pytest
 import torch
 

@@ -2,6 +2,7 @@
 report from a result of the shape it writes, and the random-weight model of Qwen2.5-0.5B's
 shapes it falls back on."""
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +19,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 def test_the_check_runs_shrunk_on_a_cpu(tmp_path):
     out = tmp_path / "gpu-check.json"
     run = subprocess.run([sys.executable, str(SCRIPT), "--smoke", "--out", str(out)],
-                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                         env={**os.environ, "CUDA_VISIBLE_DEVICES": ""})   # the CPU path, on a GPU machine too
     assert run.returncode == 0, run.stderr[-2000:]
     result = json.loads(out.read_text())
     assert result["steps"] == 2 and len(result["step_seconds"]) == 2
@@ -56,6 +58,15 @@ def test_the_gpu_report_sets_each_measurement_against_the_plan():
     assert "max_memory_allocated)    9.00 GiB   plan  10.10 GiB" in text
     assert "median of 3): 2.00 (generation 0.60)" in text
     assert "non-finite skips: 1; gradient scaler's scale per step: 65536, 32768, 32768, 32768" in text
+    assert "probe" not in text and "cap bounds" not in text   # an older result has no probes
+
+    result.update(scaler="GradScaler", probes=dict(
+        allocator_cap=dict(refused_past_cap=True, granted_under_cap=False),
+        autocast_copies=dict(planned_copies_gib=0.92, forward_extra_gib=[0.93, 0.94], held_after_gib=[0.0, 0.01])))
+    text = gpu_check.report(result)
+    assert "a block past it refused True, one under it granted False" in text
+    assert "sampling forward: 0.93, 0.94 GiB (plan 2P = 0.92 GiB), held after it 0.00, 0.01 GiB" in text
+    assert "gradient scaler (GradScaler)'s scale per step: 65536" in text
 
 
 def test_the_shaped_model_has_qwen25_05bs_parameters_and_architecture():

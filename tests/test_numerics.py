@@ -151,9 +151,10 @@ def test_non_finite_sampling_logits_skip_the_step_and_are_counted(monkeypatch, c
     hook = _OverflowingForward(policy.model, value, after)
     monkeypatch.setattr(policy.model, "forward", hook)
     with pytest.raises(NonFiniteLogits, match="non-finite logits"):    # the sampler itself refuses
-        ids, mask = tokenize_prompts(policy.tokenizer, ["a b c"], "cpu")
+        device = policy.accelerator.device   # the CPU in CI, a GPU where there is one
+        ids, mask = tokenize_prompts(policy.tokenizer, ["a b c"], device)
         sample(policy.model, ids, mask, group_size=2, max_new_tokens=4, eos_ids=policy.eos_ids,
-               pad_id=policy.tokenizer.pad_token_id, generator=torch.Generator().manual_seed(0))
+               pad_id=policy.tokenizer.pad_token_id, generator=torch.Generator(device).manual_seed(0))
     hook.calls = 0
     m = train.grpo_step(policy, PROMPTS)
     assert m["nonfinite_skipped"] == 1 and m["sampling_skipped"] == 1 and "reward_mean" not in m

@@ -1,5 +1,6 @@
 """The memory plan against a peak measured on the CPU, and the time plan's arithmetic."""
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,8 @@ from course_utils import plan
 from course_utils.config import load_config
 
 PROBE = Path(__file__).with_name("memory_probe.py")
+# the probe measures the CPU's resident memory, so it runs on the CPU on a GPU machine too
+CPU_ONLY = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
 
 
 def _cfg(**kw):
@@ -38,7 +41,7 @@ def test_qwen_parameter_count_matches_the_architecture():
 @pytest.mark.parametrize("prompts, group, prompt_len, completion_len", [(1, 4, 64, 16), (3, 8, 128, 40)])
 def test_memory_plan_within_15_percent_of_the_measured_cpu_peak(prompts, group, prompt_len, completion_len):
     out = subprocess.run([sys.executable, str(PROBE), str(prompts), str(group), str(prompt_len),
-                          str(completion_len)], capture_output=True, text=True, timeout=600, check=True)
+                          str(completion_len)], capture_output=True, text=True, timeout=600, check=True, env=CPU_ONLY)
     measured = json.loads(out.stdout.strip().splitlines()[-1])["peak_gib"] * plan.GiB
     cfg = _cfg(prompts_per_step=prompts, group_size=group)
     predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, prompt_len, completion_len,
@@ -52,7 +55,7 @@ def test_lora_memory_plan_within_25_percent_of_the_measured_cpu_peak():
     that is counted as persistent but not yet allocated at the peak; under LoRA nothing covers
     it. The bound is wider to say so; the plan stays a guide, not a guarantee, for LoRA."""
     out = subprocess.run([sys.executable, str(PROBE), "3", "8", "128", "40", "16"],
-                         capture_output=True, text=True, timeout=600, check=True)
+                         capture_output=True, text=True, timeout=600, check=True, env=CPU_ONLY)
     measured = json.loads(out.stdout.strip().splitlines()[-1])["peak_gib"] * plan.GiB
     cfg = _cfg(prompts_per_step=3, group_size=8, lora_rank=16)
     predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, 128, 40, device=plan.CPU_PROBE))

@@ -92,8 +92,10 @@ print(json.dumps(cfg.to_dict(), indent=1))
 # positions. `course_utils.plan` adds these up; its memory model is checked against a peak
 # measured on a CPU for a smaller batch of the same architecture (`tests/test_plan.py`, within
 # 15%), but in fp32, without checkpointing or autocast and against resident memory: the T4 run
-# differs in exactly those terms, so 15% there is a claim its first run tests. Under autocast the
-# checkpointed layer inputs are the residual stream, which stays fp32 (4 bytes a value, not 2).
+# differs in exactly those terms, so 15% there is a claim its first run tests. (On a GPU
+# emulating a T4's limits, section 4, the allocator's peak came to {{fig:gpu.reserved_vs_plan}}
+# and {{fig:gpu.accum8.reserved_vs_plan}} of the plan's at two micro-batch sizes.) Under autocast
+# the checkpointed layer inputs are the residual stream, which stays fp32 (4 bytes a value, not 2).
 #
 # **Units.** CUDA counts memory in GiB ($2^{30}$ bytes). A T4 sold as 16 GB reports a total of
 # {{fig:plan.t4_total_gib}} GiB with ECC on, as on Colab; the CUDA context and the libraries'
@@ -141,7 +143,9 @@ print(f"3 hours at that rate: {3 * 3600 / per_step:.0f} steps, "
 # {{fig:plan.t4_reservable_gib}} GiB it has: more than the plan's own error. Twice that per
 # micro-batch (`grad_accum=8`) would need {{fig:plan.accum8_logits_gib}} GiB for the logits alone
 # and plan {{fig:plan.accum8_reserved_gib}} GiB, a headroom of {{fig:plan.accum8_headroom_pct}},
-# inside that error: it may fit or not, so do not count on it. Near the limit,
+# inside that error: it may fit or not, so do not count on it (on the emulated T4 of section 4
+# it fitted, at {{fig:gpu.accum8.reserved_gib}} GiB, but a T4's own context and cache can
+# differ). Near the limit,
 # `PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True`, set before torch first uses the GPU, lets
 # the allocator grow its blocks instead of caching odd-sized ones, which shrinks its cache.
 #
@@ -207,16 +211,50 @@ display(Image(filename=str(run / "curves.png")))
 display(Markdown((run / "report.md").read_text()))
 
 # %% [markdown]
-# ### Verified on a T4: not yet
+# ### Verified on a T4: not yet. On an emulated T4: memory and the fp16 code path
 #
 # No one has run this notebook on a T4 yet: the course is built on CPUs, and everything above
 # about the T4 is a plan, checked on the CPU where it can be (the memory model against a
 # measured peak, fp16 refused without a GPU, the fp16 NaN guards with injected overflows in the
 # update and in sampling). `benchmarks/gpu_check.py` is the step before this notebook: on any
 # CUDA GPU it emulates a T4 as far as software can (fp16 autocast with the gradient scaler, TF32
-# and bf16 off, memory capped at the T4's) and runs the `t4` preset's shapes for a few steps,
-# printing the reserved peak against the plan; CI runs it shrunk on a CPU, and it has not yet run
-# on a GPU. The first real run must confirm five things, and the next cell reads each from the run
+# and bf16 off, PyTorch's allocator capped at what a T4 leaves it) and runs the `t4` preset's
+# shapes for a few steps on a model of Qwen2.5-0.5B's exact shapes with random weights; CI runs
+# it shrunk on a CPU. It has run on an {{fig:gpu.name}}, with the allocator capped at
+# {{fig:gpu.cap_gib}} GiB ({{fig:gpu.steps}} steps after a warm-up; its output is at the end of
+# this section):
+#
+# - **the allocator's peak** was {{fig:gpu.reserved_gib}} GiB against the plan's
+#   {{fig:gpu.plan_reserved_gib}} ({{fig:gpu.reserved_vs_plan}}) with the preset's micro-batches
+#   of {{fig:gpu.rows}} rows, and {{fig:gpu.accum8.reserved_gib}} GiB against
+#   {{fig:gpu.accum8.plan_reserved_gib}} ({{fig:gpu.accum8.reserved_vs_plan}}) with
+#   {{fig:gpu.accum8.rows}} (`grad_accum=8`), which fitted under the cap. The terms were off in
+#   opposite directions: the tensors' peak was {{fig:gpu.allocated_vs_plan}} and
+#   {{fig:gpu.accum8.allocated_vs_plan}} off the plan's, and the allocator's cache
+#   {{fig:gpu.cache_pct}} and {{fig:gpu.accum8.cache_pct}} of the tensors' peak against the plan's
+#   {{fig:plan.t4_cache_pct}}. The cache, which depends on the order and sizes of allocations, is
+#   the plan's least certain term;
+# - **autocast's fp16 copies of the weights**: one sampling forward (no gradients, as the
+#   sampler runs) held {{fig:gpu.copies_gib}} GiB more than before it (two forwards), against the
+#   plan's two bytes a parameter, {{fig:gpu.plan_copies_gib}} GiB, and at most
+#   {{fig:gpu.copies_held_after_gib}} GiB stayed after it returned: the copies are made again at
+#   every call, so each decoding step reads the fp32 weights and writes and reads their fp16
+#   copies, the time plan's 8 bytes a parameter;
+# - **the cap is real**: a block a quarter GiB past it was refused and one a quarter GiB under it
+#   granted, so the peaks above were measured under a T4's limit, not beside it;
+# - **fp16**: {{fig:gpu.nonfinite_skipped}} steps skipped, and the gradient scaler's scale stayed
+#   at {{fig:gpu.scaler_scale}}.
+#
+# What it could not reproduce: a T4's speed (the {{fig:gpu.name}} took {{fig:gpu.step_s}} s a
+# step; the plan's {{fig:plan.t4_hours}} hours rest on {{fig:gpu.plan_t4_step_s}} s a step on a
+# T4), the fp16 behaviour of trained weights (random weights overflow differently, or not at
+# all), what a T4's own CUDA context holds outside the allocator (this GPU's process held
+# {{fig:gpu.outside_gib}} GiB there; the plan takes {{fig:plan.t4_outside_gib}} GiB from Colab
+# reports), and Qwen2.5's prompt length: without the hub the check tokenizes with the embedded
+# SmolLM2's tokenizer and chat template, so its prompts had {{fig:gpu.prompt_len}} tokens, and the
+# plan it is set against was computed at that same length.
+#
+# The first real run on a T4 must confirm five things, and the next cell reads each from the run
 # you just made and sets it against what the plan predicts:
 #
 # 1. **the allocator's peak** (`torch.cuda.max_memory_reserved`) at or below the plan's reserved
