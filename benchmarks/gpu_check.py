@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         completion_tokens=[r.get("completion_tokens") for r in records],
         nonfinite_skipped=records[-1]["nonfinite_skipped"],
         scaler_scale=scales,
-        scaler=type(getattr(policy.accelerator, "scaler", None)).__name__,
+        scaler=None if scaler_scale(policy) is None else type(policy.accelerator.scaler).__name__,
         probes=probes,
     )
     print(report(result))
@@ -235,9 +235,9 @@ def report(result: dict) -> str:
     lines.append(f"  seconds per step (median of {result['steps']}): {med(result['step_seconds']):.2f} "
                  "(" + ", ".join(f"{k} {med(v):.2f}" for k, v in result["phase_seconds"].items()) + ")"
                  f"; a T4 by the plan: {p['seconds_per_step_t4']:.1f}")
-    scaler = result.get("scaler", "NoneType")
+    scaler = result.get("scaler")
     lines.append(f"  non-finite skips: {result['nonfinite_skipped']}; gradient scaler"
-                 f"{'' if scaler == 'NoneType' else f' ({scaler})'}'s scale per step: "
+                 f"{f' ({scaler})' if scaler else ''}'s scale per step: "
                  + ("none (no fp16)" if result["scaler_scale"][0] is None
                     else ", ".join(f"{s:g}" for s in result["scaler_scale"])))
     return "\n".join(lines)

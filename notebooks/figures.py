@@ -110,9 +110,9 @@ def plan_figures() -> dict[str, str]:
 def gpu_check_figures() -> dict[str, str]:
     """Lesson 7, section 4: benchmarks/gpu_check.py's stored runs on a GPU emulating a T4, at the
     t4 preset (grad_accum 16) and with twice the rows per micro-batch (grad_accum 8)."""
+    runs = {"gpu": _json("gpu-check.json"), "gpu.accum8": _json("gpu-check-grad-accum-8.json")}
     out = {}
-    for prefix, name in (("gpu", "gpu-check.json"), ("gpu.accum8", "gpu-check-grad-accum-8.json")):
-        r = _json(name)
+    for prefix, r in runs.items():
         m, p = r["measured"], r["planned"]
         out.update({
             f"{prefix}.reserved_gib": f"{m['reserved_gib']:.2f}",
@@ -124,7 +124,7 @@ def gpu_check_figures() -> dict[str, str]:
             f"{prefix}.cache_pct": f"{m['allocator_cache']:.0%}",
             f"{prefix}.rows": f"{r['micro_batch_rows']}",
         })
-    r = _json("gpu-check.json")
+    r = runs["gpu"]
     copies = r["probes"]["autocast_copies"]
     out.update({
         "gpu.name": r["emulation"]["gpu"],
