@@ -124,6 +124,10 @@ class Config:
                                          "0.1 + (1 - running pass rate), so unsolved targets get "
                                          "more samples (course_utils/curriculum.py)",
                               ("uniform", "prioritized"))
+    hard_targets_first: int = _f(0, "curriculum: the first N steps draw only the targets that need "
+                                    "the most digits (10-12 in the cpu preset), so the reply shape "
+                                    "the policy first settles on has room for them; needs "
+                                    "target_sampling='prioritized'; 0: off (course_utils/curriculum.py)")
     # --- engineering ---------------------------------------------------------------------------
     precision: str = _f("fp32", "fp32 everywhere, or fp16/bf16 autocast with fp32 master weights "
                                 "(fp16 uses a gradient scaler; it needs a GPU); 'auto': bf16 on a CPU "
@@ -244,6 +248,10 @@ class Config:
         need(self.target_sampling == "uniform" or not self.dynamic_sampling, "target_sampling",
              "'prioritized' learns pass rates from every sampled group, which dynamic sampling "
              "drops; turn one of them off")
+        need(self.hard_targets_first >= 0, "hard_targets_first", "must be >= 0 (0 turns it off)")
+        need(self.hard_targets_first == 0 or self.target_sampling == "prioritized",
+             "hard_targets_first", "draws from the prioritized sampler's targets: also pass "
+             "--target_sampling prioritized, or set it to 0")
         need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
              f"must be between 0 and digit_sum_max={self.digit_sum_max}")
         need(self.digit_sum_max <= 9 * self.target_chars, "digit_sum_max",

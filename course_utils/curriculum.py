@@ -14,6 +14,12 @@ an unsolved target is drawn up to (1 + floor) / floor times as often as a solved
 solved target is still seen, so what it learned is kept up. A target never sampled yet counts
 as unsolved. The draw is seeded by (seed, step), and the pass rates are saved in each
 checkpoint, so a resumed run draws exactly the batches an uninterrupted one would.
+
+``hard_targets_first`` (a curriculum, hardest first) restricts the first steps' draw to the
+targets that need the most digits. Why hardest first: the easy targets are solved first by
+copying the target into a one-character slot ("N don't need..."), and a reply shape with one
+slot cannot hold 10-12, so the policy is stuck in it. A shape learned on two-digit targets has a
+two-character slot, and two digits can add up to every target from 1 to 18.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from __future__ import annotations
 import torch
 
 from . import data
+from .rewards import digits_needed
 
 
 class TargetPriority:
@@ -45,10 +52,21 @@ class TargetPriority:
         return torch.tensor([self.floor + 1.0 - self.pass_rate[t] for t in self.targets],
                             dtype=torch.float64)
 
-    def batch(self, seed: int, step: int, size: int) -> list[data.Prompt]:
-        """``size`` prompts: each a target drawn by weight, then a prompt with that target."""
+    def hardest(self) -> list[int]:
+        """The pool's targets that need the most digits (``rewards.digits_needed``)."""
+        most = max(digits_needed(t) for t in self.targets)
+        return [t for t in self.targets if digits_needed(t) == most]
+
+    def batch(self, seed: int, step: int, size: int, only: list[int] | None = None) -> list[data.Prompt]:
+        """``size`` prompts: each a target drawn by weight (among ``only``, if given), then a
+        prompt with that target."""
         g = torch.Generator().manual_seed(seed * 1_000_003 + step)
-        picks = torch.multinomial(self.weights(), size, replacement=True, generator=g).tolist()
+        weights = self.weights()
+        if only is not None:
+            weights = weights * torch.tensor([float(t in only) for t in self.targets], dtype=weights.dtype)
+            if not weights.any():
+                raise ValueError(f"none of the targets {only} is in the pool ({self.targets})")
+        picks = torch.multinomial(weights, size, replacement=True, generator=g).tolist()
         out = []
         for k in picks:
             pool = self.by_target[self.targets[k]]

@@ -806,8 +806,11 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
                disable=not (progress and main))
     for step in bar:
         stop.deferring = True   # a signal from here on ends this step first (see interrupt.py)
-        batch = policy.priority.batch(cfg.seed, step, cfg.prompts_per_step) if policy.priority \
-            else batch_for_step(step, train_prompts, cfg)
+        if policy.priority:   # hardest targets only for the curriculum's first steps
+            only = policy.priority.hardest() if step < cfg.hard_targets_first else None
+            batch = policy.priority.batch(cfg.seed, step, cfg.prompts_per_step, only=only)
+        else:
+            batch = batch_for_step(step, train_prompts, cfg)
         metrics = grpo_step(policy, batch,
                             refill=lambda k, step=step: refill_batch(step, k, train_prompts, cfg))
         record = dict(step=step + 1, epoch=step // cfg.steps_per_epoch, **metrics)

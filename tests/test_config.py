@@ -27,6 +27,8 @@ def test_t4_preset_needs_a_gpu_for_fp16_and_says_so():
     (dict(loss_type="mean"), "loss_type", "grpo, bnpo, dapo, dr_grpo"),
     (dict(target_sampling="prioritized", dynamic_sampling=True), "target_sampling", "dynamic sampling"),
     (dict(entropy_bonus="adaptive"), "entropy_coef", "adaptive"),
+    (dict(hard_targets_first=10), "hard_targets_first", "--target_sampling prioritized"),
+    (dict(target_sampling="prioritized", hard_targets_first=-1), "hard_targets_first", ">= 0"),
     (dict(reward="dense"), "reward", "binary, shaped"),
     (dict(clip_eps_low=1.5), "clip_eps_low", "(0, 1)"),
     (dict(grad_accum=3), "grad_accum", "divide prompts_per_step"),

@@ -86,3 +86,37 @@ def test_bad_settings_and_a_changed_pool_are_handled():
     new.load_state_dict(old.state_dict())
     assert new.pass_rate == {3: 1.0, 7: 0.0} and new.seen == {3: True, 7: False}
     assert len(new.weights()) == 2
+
+
+@pytest.mark.parametrize("targets, hardest", [((3, 5, 10, 12), [10, 12]), ((3, 5, 9), [3, 5, 9]),
+                                              ((3, 18, 19), [19]), ((12,), [12])])
+def test_hardest_targets_are_those_needing_the_most_digits(targets, hardest):
+    assert curriculum.TargetPriority(pool(targets=targets)).hardest() == hardest
+
+
+def test_a_restricted_draw_keeps_to_its_targets_and_their_weights():
+    prompts = pool()
+    prio = curriculum.TargetPriority(prompts, floor=0.1)
+    prio.observe([p for p in prompts if p.target_digit_sum == 10][:1], torch.ones(4), group_size=4)
+    only = prio.hardest()
+    a = prio.batch(seed=1, step=7, size=16, only=only)
+    assert a == prio.batch(seed=1, step=7, size=16, only=only)          # seeded by (seed, step)
+    drawn = [p.target_digit_sum for step in range(300) for p in prio.batch(1, step, 4, only=only)]
+    assert set(drawn) == {10, 12}                                        # no one-digit target
+    # 10 is solved (weight 0.1), 12 is not (1.1): 10 gets 0.1 / 1.2 of the draws, not half
+    assert abs(drawn.count(10) / len(drawn) - 0.1 / 1.2) < 0.03
+    with pytest.raises(ValueError, match=r"none of the targets \[7\]"):
+        prio.batch(0, 0, 4, only=[7])
+
+
+def test_training_draws_only_the_hardest_targets_for_the_curriculums_steps(tmp_path):
+    from course_utils import checkpoint, train
+    from course_utils.config import load_config
+
+    cfg = load_config("smoke", out_dir=str(tmp_path), digit_sum_min=3, digit_sum_max=12,
+                      target_sampling="prioritized", hard_targets_first=3, max_steps=6, train_prompts=32)
+    train.train(cfg, progress=False)
+    rows = cfg.prompts_per_step * cfg.group_size
+    two_digit = [r["samples_two_digit"] for r in checkpoint.MetricsLog(tmp_path / "metrics.jsonl").read()]
+    assert two_digit[:3] == [rows] * 3             # the curriculum: two-digit targets only
+    assert min(two_digit[3:]) < rows               # then every target again (seeded: some one-digit)
