@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .rewards import digits_needed
+
 # The one switch that shrinks every notebook and the main job for CI. Read it only through
 # `smoke_mode()` so there is exactly one place that decides what "smoke" means.
 SMOKE_ENV = "COURSE_SMOKE"
@@ -124,8 +126,9 @@ class Config:
                                          "0.1 + (1 - running pass rate), so unsolved targets get "
                                          "more samples (course_utils/curriculum.py)",
                               ("uniform", "prioritized"))
-    hard_targets_first: int = _f(0, "curriculum: the first N steps draw only the targets that need "
-                                    "the most digits (10-12 in the cpu preset), so the reply shape "
+    hard_first_steps: int = _f(0, "curriculum: the first N steps draw only the targets that need "
+                                    "the most digits (10-12 in the cpu preset; by the prioritized "
+                                    "weights among them), so the reply shape "
                                     "the policy first settles on has room for them; needs "
                                     "target_sampling='prioritized'; 0: off (course_utils/curriculum.py)")
     # --- engineering ---------------------------------------------------------------------------
@@ -248,10 +251,14 @@ class Config:
         need(self.target_sampling == "uniform" or not self.dynamic_sampling, "target_sampling",
              "'prioritized' learns pass rates from every sampled group, which dynamic sampling "
              "drops; turn one of them off")
-        need(self.hard_targets_first >= 0, "hard_targets_first", "must be >= 0 (0 turns it off)")
-        need(self.hard_targets_first == 0 or self.target_sampling == "prioritized",
-             "hard_targets_first", "draws from the prioritized sampler's targets: also pass "
+        need(self.hard_first_steps == 0 or self.target_sampling == "prioritized",
+             "hard_first_steps", "draws from the prioritized sampler's targets: also pass "
              "--target_sampling prioritized, or set it to 0")
+        need(self.hard_first_steps == 0 or
+             digits_needed(self.digit_sum_min) < digits_needed(self.digit_sum_max), "hard_first_steps",
+             f"every target from digit_sum_min={self.digit_sum_min} to digit_sum_max="
+             f"{self.digit_sum_max} needs the same number of digits, so the curriculum would draw "
+             "them all; widen the range or set it to 0")
         need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
              f"must be between 0 and digit_sum_max={self.digit_sum_max}")
         need(self.digit_sum_max <= 9 * self.target_chars, "digit_sum_max",
@@ -287,9 +294,9 @@ SIZE_BOUNDS = [("prompt_tokens", 1, 8192), ("target_chars", 1, 10_000),
                ("warmup_steps", 0, 10_000_000), ("eval_every", 0, 10_000_000),
                ("save_every", 1, 10_000_000), ("lora_rank", 0, 4_096),
                ("digit_sum_min", 0, 90_000), ("digit_sum_max", 0, 90_000),
-               ("seed", 0, 2**31 - 1)]
+               ("hard_first_steps", 0, 10_000_000), ("seed", 0, 2**31 - 1)]
 SIZE_REASONS = {"group_size": " (a group of one has no relative advantage)",
-                "lora_rank": " (0 turns LoRA off)"}
+                "lora_rank": " (0 turns LoRA off)", "hard_first_steps": " (0 turns it off)"}
 MAX_STEPS = 10_000_000
 # (field, smallest, largest, the range in words) for every real-number setting.
 FLOAT_BOUNDS = [("temperature", 0.01, 10.0, "from 0.01 to 10 (evaluation has a greedy mode for 0)"),

@@ -15,11 +15,14 @@ solved target is still seen, so what it learned is kept up. A target never sampl
 as unsolved. The draw is seeded by (seed, step), and the pass rates are saved in each
 checkpoint, so a resumed run draws exactly the batches an uninterrupted one would.
 
-``hard_targets_first`` (a curriculum, hardest first) restricts the first steps' draw to the
-targets that need the most digits. Why hardest first: the easy targets are solved first by
-copying the target into a one-character slot ("N don't need..."), and a reply shape with one
-slot cannot hold 10-12, so the policy is stuck in it. A shape learned on two-digit targets has a
-two-character slot, and two digits can add up to every target from 1 to 18.
+``hard_first_steps`` (a curriculum, hardest first) restricts the first ``hard_first_steps``
+steps' draw to the targets that need the most digits, still weighted by w(t) among them. Why,
+as a hypothesis for the runs to test: the easy targets are solved first by copying the target
+into a reply whose length fits one digit ("N don't need..."), and once that shape is learned a
+second digit makes the reply one character too long, so two-digit targets stay unsolved. A
+shape learned on two-digit targets has room for two digits, and two digits can add up to any
+target from 1 to 18. After the curriculum the easy targets, never seen, count as unsolved and
+get the full weight. The restriction depends only on the step, so a resume stays exact.
 """
 
 from __future__ import annotations
@@ -63,9 +66,9 @@ class TargetPriority:
         g = torch.Generator().manual_seed(seed * 1_000_003 + step)
         weights = self.weights()
         if only is not None:
+            if not set(only) & set(self.targets):
+                raise ValueError(f"only={only}: none of these targets is in the pool {self.targets}")
             weights = weights * torch.tensor([float(t in only) for t in self.targets], dtype=weights.dtype)
-            if not weights.any():
-                raise ValueError(f"none of the targets {only} is in the pool ({self.targets})")
         picks = torch.multinomial(weights, size, replacement=True, generator=g).tolist()
         out = []
         for k in picks:

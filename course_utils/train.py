@@ -807,7 +807,7 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     for step in bar:
         stop.deferring = True   # a signal from here on ends this step first (see interrupt.py)
         if policy.priority:   # hardest targets only for the curriculum's first steps
-            only = policy.priority.hardest() if step < cfg.hard_targets_first else None
+            only = policy.priority.hardest() if step < cfg.hard_first_steps else None
             batch = policy.priority.batch(cfg.seed, step, cfg.prompts_per_step, only=only)
         else:
             batch = batch_for_step(step, train_prompts, cfg)

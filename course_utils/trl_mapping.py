@@ -102,8 +102,8 @@ MAPPING: tuple[Row, ...] = (
     Row((), {"use_vllm": False, "vllm_importance_sampling_correction": True},
         note="the course samples with the model it trains; the correction acts only with vLLM's "
              "sampler (lesson 4, section 6)"),
-    Row(("target_sampling", "hard_targets_first"), {"shuffle_dataset": True},
-        note="'uniform' is TRL's shuffle; 'prioritized' and hard_targets_first "
+    Row(("target_sampling", "hard_first_steps"), {"shuffle_dataset": True},
+        note="'uniform' is TRL's shuffle; 'prioritized' and hard_first_steps "
              "(course_utils.curriculum) have no TRL flag"),
     Row(("precision",), {"fp16": False, "bf16": None},
         note="bf16=None turns bf16 on unless fp16 is set, on a CPU too: set both"),
@@ -142,8 +142,8 @@ def no_equivalent(cfg: Config) -> list[str]:
         lines.append("entropy_bonus='inverse_variance' (TRL has constant and adaptive)")
     if cfg.target_sampling != "uniform":
         lines.append(f"target_sampling={cfg.target_sampling!r} (TRL shuffles uniformly)")
-    if cfg.hard_targets_first:
-        lines.append(f"hard_targets_first={cfg.hard_targets_first} (TRL has no curriculum)")
+    if cfg.hard_first_steps:
+        lines.append(f"hard_first_steps={cfg.hard_first_steps} (TRL has no curriculum)")
     return lines
 
 

@@ -105,18 +105,33 @@ def test_a_restricted_draw_keeps_to_its_targets_and_their_weights():
     assert set(drawn) == {10, 12}                                        # no one-digit target
     # 10 is solved (weight 0.1), 12 is not (1.1): 10 gets 0.1 / 1.2 of the draws, not half
     assert abs(drawn.count(10) / len(drawn) - 0.1 / 1.2) < 0.03
-    with pytest.raises(ValueError, match=r"none of the targets \[7\]"):
+    assert prio.batch(1, 7, 16, only=prio.targets) == prio.batch(1, 7, 16)   # no restriction
+    assert {p.target_digit_sum for p in prio.batch(0, 0, 32, only=[7, 12])} == {12}
+    with pytest.raises(ValueError, match=r"only=\[7\]: none of these targets"):
         prio.batch(0, 0, 4, only=[7])
 
 
-def test_training_draws_only_the_hardest_targets_for_the_curriculums_steps(tmp_path):
+def test_training_draws_only_the_hardest_targets_for_the_curriculums_steps(tmp_path, monkeypatch):
     from course_utils import checkpoint, train
     from course_utils.config import load_config
 
+    restricted = []
+    batch = train.curriculum.TargetPriority.batch
+    monkeypatch.setattr(train.curriculum.TargetPriority, "batch", lambda self, *a, only=None, **k:
+                        (restricted.append(only), batch(self, *a, only=only, **k))[1])
     cfg = load_config("smoke", out_dir=str(tmp_path), digit_sum_min=3, digit_sum_max=12,
-                      target_sampling="prioritized", hard_targets_first=3, max_steps=6, train_prompts=32)
+                      target_sampling="prioritized", hard_first_steps=3, max_steps=6, train_prompts=32)
     train.train(cfg, progress=False)
+    assert restricted == [[10, 11, 12]] * 3 + [None] * 3     # exactly the curriculum's steps
     rows = cfg.prompts_per_step * cfg.group_size
     two_digit = [r["samples_two_digit"] for r in checkpoint.MetricsLog(tmp_path / "metrics.jsonl").read()]
     assert two_digit[:3] == [rows] * 3             # the curriculum: two-digit targets only
     assert min(two_digit[3:]) < rows               # then every target again (seeded: some one-digit)
+
+
+def test_the_curriculum_resumes_bitwise_across_its_end(resume_pair):
+    (ra, rb), (a, b) = resume_pair(target_sampling="prioritized", hard_first_steps=3,
+                                   digit_sum_max=12, train_prompts=32)
+    for key in ("samples_two_digit", "reward_mean", "loss"):
+        assert [r[key] for r in ra] == [r[key] for r in rb], key
+    assert all(torch.equal(a[k], b[k]) for k in a)

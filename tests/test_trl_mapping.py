@@ -115,6 +115,13 @@ def test_options_trl_cannot_express_are_named(option, value, words):
     assert len(left_out) == 1 and left_out[0].startswith(words)
 
 
+def test_the_curriculum_is_named_beside_the_prioritized_sampling_it_needs():
+    cfg = Config.from_dict({**PRESETS["cpu"], "target_sampling": "prioritized", "hard_first_steps": 5})
+    _, left_out = trl_mapping.grpo_config_kwargs(cfg)
+    assert left_out == ["target_sampling='prioritized' (TRL shuffles uniformly)",
+                        "hard_first_steps=5 (TRL has no curriculum)"]
+
+
 def test_an_unresolved_precision_is_refused_and_a_resolved_one_used():
     cfg = Config.from_dict({**PRESETS["cpu"], "precision": "auto"})
     with pytest.raises(ValueError, match="effective_precision"):
