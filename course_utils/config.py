@@ -127,10 +127,11 @@ class Config:
                                          "more samples (course_utils/curriculum.py)",
                               ("uniform", "prioritized"))
     hard_first_steps: int = _f(0, "curriculum: the first N steps draw only the targets that need "
-                                    "the most digits (10-12 in the cpu preset; by the prioritized "
-                                    "weights among them), so the reply shape "
-                                    "the policy first settles on has room for them; needs "
-                                    "target_sampling='prioritized'; 0: off (course_utils/curriculum.py)")
+                                  "the most digits (10-12 in the cpu preset), by the prioritized "
+                                  "weights among them, meant to make the first reply shape the "
+                                  "policy settles on have room for them (a hypothesis, "
+                                  "course_utils/curriculum.py); needs "
+                                  "target_sampling='prioritized'; 0: off")
     # --- engineering ---------------------------------------------------------------------------
     precision: str = _f("fp32", "fp32 everywhere, or fp16/bf16 autocast with fp32 master weights "
                                 "(fp16 uses a gradient scaler; it needs a GPU); 'auto': bf16 on a CPU "
@@ -254,13 +255,14 @@ class Config:
         need(self.hard_first_steps == 0 or self.target_sampling == "prioritized",
              "hard_first_steps", "draws from the prioritized sampler's targets: also pass "
              "--target_sampling prioritized, or set it to 0")
+        need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
+             f"must be between 0 and digit_sum_max={self.digit_sum_max}")
+        # after the range check, so a reversed range is named as such
         need(self.hard_first_steps == 0 or
              digits_needed(self.digit_sum_min) < digits_needed(self.digit_sum_max), "hard_first_steps",
              f"every target from digit_sum_min={self.digit_sum_min} to digit_sum_max="
              f"{self.digit_sum_max} needs the same number of digits, so the curriculum would draw "
              "them all; widen the range or set it to 0")
-        need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
-             f"must be between 0 and digit_sum_max={self.digit_sum_max}")
         need(self.digit_sum_max <= 9 * self.target_chars, "digit_sum_max",
              f"must be at most 9 * target_chars = {9 * self.target_chars}, or no completion "
              "could reach it")

@@ -32,6 +32,8 @@ def test_t4_preset_needs_a_gpu_for_fp16_and_says_so():
     (dict(target_sampling="prioritized", hard_first_steps=True), "hard_first_steps", "from 0 to"),
     (dict(target_sampling="prioritized", hard_first_steps=5, digit_sum_max=9), "hard_first_steps",
      "same number of digits"),
+    (dict(target_sampling="prioritized", hard_first_steps=5, digit_sum_min=12, digit_sum_max=3),
+     "digit_sum_min", "between 0 and digit_sum_max"),
     (dict(reward="dense"), "reward", "binary, shaped"),
     (dict(clip_eps_low=1.5), "clip_eps_low", "(0, 1)"),
     (dict(grad_accum=3), "grad_accum", "divide prompts_per_step"),
