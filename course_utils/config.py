@@ -132,6 +132,9 @@ class Config:
                                   "policy settles on have room for them (a hypothesis, "
                                   "course_utils/curriculum.py); needs "
                                   "target_sampling='prioritized'; 0: off")
+    hard_first_ramp: bool = _f(False, "with hard_first_steps: let the other targets in gradually "
+                                      "(their weights scaled by step / hard_first_steps) instead "
+                                      "of all at once when the curriculum ends")
     # --- engineering ---------------------------------------------------------------------------
     precision: str = _f("fp32", "fp32 everywhere, or fp16/bf16 autocast with fp32 master weights "
                                 "(fp16 uses a gradient scaler; it needs a GPU); 'auto': bf16 on a CPU "
@@ -205,6 +208,8 @@ class Config:
             choices = f.metadata.get("choices")
             if choices:
                 need(getattr(self, f.name) in choices, f.name, f"choose one of {', '.join(choices)}")
+            if f.type in (bool, "bool"):   # a "yes" or a 1 from a dict or a JSON file is a typo
+                need(isinstance(getattr(self, f.name), bool), f.name, "must be true or false")
         need(isinstance(self.model, str) and self.model.strip() != "", "model", "give a model name")
         # Sizes: whole numbers in a range. The upper bounds are far beyond any run this course
         # plans, and stop a typo (an extra zero or three) before it costs a model load and an
@@ -255,6 +260,9 @@ class Config:
         need(self.hard_first_steps == 0 or self.target_sampling == "prioritized",
              "hard_first_steps", "draws from the prioritized sampler's targets: also pass "
              "--target_sampling prioritized, or set it to 0")
+        need(not self.hard_first_ramp or self.hard_first_steps > 0, "hard_first_ramp",
+             "ramps the curriculum of hard_first_steps, which is 0: also pass --hard_first_steps N, "
+             "or drop --hard_first_ramp")
         need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
              f"must be between 0 and digit_sum_max={self.digit_sum_max}")
         # after the range check, so a reversed range is named as such

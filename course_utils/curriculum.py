@@ -23,6 +23,12 @@ second digit makes the reply one character too long, so two-digit targets stay u
 shape learned on two-digit targets has room for two digits, and two digits can add up to any
 target from 1 to 18. After the curriculum the easy targets, never seen, count as unsolved and
 get the full weight. The restriction depends only on the step, so a resume stays exact.
+
+``hard_first_ramp`` lets the other targets in gradually instead: at curriculum step k (counted
+from 0) their weights are scaled by k / ``hard_first_steps``, so the first step draws the
+hardest targets only and the easy ones reach their full weight as the curriculum ends. Why, as
+a second hypothesis: in a run that switched them on all at once, the never-seen easy targets
+took most of the next batches and the policy dropped the shape it had found for the hard ones.
 """
 
 from __future__ import annotations
@@ -60,15 +66,20 @@ class TargetPriority:
         most = max(digits_needed(t) for t in self.targets)
         return [t for t in self.targets if digits_needed(t) == most]
 
-    def batch(self, seed: int, step: int, size: int, only: list[int] | None = None) -> list[data.Prompt]:
-        """``size`` prompts: each a target drawn by weight (among ``only``, if given), then a
-        prompt with that target."""
+    def batch(self, seed: int, step: int, size: int, only: list[int] | None = None,
+              others_scale: float = 0.0) -> list[data.Prompt]:
+        """``size`` prompts: each a target drawn by weight, then a prompt with that target.
+        With ``only``, the other targets' weights are scaled by ``others_scale`` (0: ``only``'s
+        targets alone)."""
         g = torch.Generator().manual_seed(seed * 1_000_003 + step)
         weights = self.weights()
         if only is not None:
             if not set(only) & set(self.targets):
                 raise ValueError(f"only={only}: none of these targets is in the pool {self.targets}")
-            weights = weights * torch.tensor([float(t in only) for t in self.targets], dtype=weights.dtype)
+            if not 0 <= others_scale <= 1:
+                raise ValueError(f"others_scale must be in [0, 1], got {others_scale}")
+            weights = weights * torch.tensor([1.0 if t in only else others_scale for t in self.targets],
+                                             dtype=weights.dtype)
         picks = torch.multinomial(weights, size, replacement=True, generator=g).tolist()
         out = []
         for k in picks:

@@ -806,9 +806,13 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
                disable=not (progress and main))
     for step in bar:
         stop.deferring = True   # a signal from here on ends this step first (see interrupt.py)
-        if policy.priority:   # hardest targets only for the curriculum's first steps
-            only = policy.priority.hardest() if step < cfg.hard_first_steps else None
-            batch = policy.priority.batch(cfg.seed, step, cfg.prompts_per_step, only=only)
+        if policy.priority:   # hardest targets first for the curriculum's steps
+            if step < cfg.hard_first_steps:
+                scale = step / cfg.hard_first_steps if cfg.hard_first_ramp else 0.0
+                batch = policy.priority.batch(cfg.seed, step, cfg.prompts_per_step,
+                                              only=policy.priority.hardest(), others_scale=scale)
+            else:
+                batch = policy.priority.batch(cfg.seed, step, cfg.prompts_per_step)
         else:
             batch = batch_for_step(step, train_prompts, cfg)
         metrics = grpo_step(policy, batch,

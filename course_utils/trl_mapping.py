@@ -102,8 +102,8 @@ MAPPING: tuple[Row, ...] = (
     Row((), {"use_vllm": False, "vllm_importance_sampling_correction": True},
         note="the course samples with the model it trains; the correction acts only with vLLM's "
              "sampler (lesson 4, section 6)"),
-    Row(("target_sampling", "hard_first_steps"), {"shuffle_dataset": True},
-        note="'uniform' is TRL's shuffle; 'prioritized' and hard_first_steps "
+    Row(("target_sampling", "hard_first_steps", "hard_first_ramp"), {"shuffle_dataset": True},
+        note="'uniform' is TRL's shuffle; 'prioritized' and hard_first_steps(_ramp) "
              "(course_utils.curriculum) have no TRL flag"),
     Row(("precision",), {"fp16": False, "bf16": None},
         note="bf16=None turns bf16 on unless fp16 is set, on a CPU too: set both"),
@@ -143,7 +143,8 @@ def no_equivalent(cfg: Config) -> list[str]:
     if cfg.target_sampling != "uniform":
         lines.append(f"target_sampling={cfg.target_sampling!r} (TRL shuffles uniformly)")
     if cfg.hard_first_steps:
-        lines.append(f"hard_first_steps={cfg.hard_first_steps} (TRL has no curriculum)")
+        ramp = ", ramped" if cfg.hard_first_ramp else ""
+        lines.append(f"hard_first_steps={cfg.hard_first_steps}{ramp} (TRL has no curriculum)")
     return lines
 
 

@@ -10,6 +10,7 @@ from course_utils import train
 
 BAD = [  # (arguments, the field the message must name)
     (["--hard_first_steps", "-1"], "hard_first_steps"), (["--hard_first_steps", "5"], "hard_first_steps"),
+    (["--target_sampling", "prioritized", "--hard_first_ramp", "true"], "hard_first_ramp"),
     (["--group_size", "abc"], "group_size"), (["--group_size", "1"], "group_size"),
     (["--group_size", "100000"], "group_size"), (["--group_size", "2.5"], "group_size"),
     (["--prompts_per_step", "0"], "prompts_per_step"), (["--prompts_per_step", "5000"], "prompts_per_step"),

@@ -109,6 +109,24 @@ def test_a_restricted_draw_keeps_to_its_targets_and_their_weights():
     assert {p.target_digit_sum for p in prio.batch(0, 0, 32, only=[7, 12])} == {12}
     with pytest.raises(ValueError, match=r"only=\[7\]: none of these targets"):
         prio.batch(0, 0, 4, only=[7])
+    assert prio.batch(1, 7, 16, only=only, others_scale=0.0) == a       # 0: the hardest alone
+    assert prio.batch(1, 7, 16, only=only, others_scale=1.0) == prio.batch(1, 7, 16)
+    with pytest.raises(ValueError, match="others_scale must be in"):
+        prio.batch(0, 0, 4, only=only, others_scale=1.5)
+
+
+@pytest.mark.parametrize("scale", [0.25, 0.6])
+def test_a_ramped_draw_scales_the_other_targets_weights(scale):
+    prompts = pool(targets=range(3, 13))
+    prio = curriculum.TargetPriority(prompts)
+    prio.observe([p for p in prompts if p.target_digit_sum == 4][:1], torch.ones(4), group_size=4)
+    weights = {t: w for t, w in zip(prio.targets, prio.weights().tolist())}
+    expected = {t: w * (1.0 if t >= 10 else scale) for t, w in weights.items()}
+    drawn = [p.target_digit_sum for step in range(1500)
+             for p in prio.batch(2, step, 4, only=prio.hardest(), others_scale=scale)]
+    total = sum(expected.values())
+    for t in (4, 5, 11):   # a solved easy target, an unsolved easy one, a hard one
+        assert abs(drawn.count(t) / len(drawn) - expected[t] / total) < 0.02, t
 
 
 def test_training_draws_only_the_hardest_targets_for_the_curriculums_steps(tmp_path, monkeypatch):
@@ -127,6 +145,22 @@ def test_training_draws_only_the_hardest_targets_for_the_curriculums_steps(tmp_p
     two_digit = [r["samples_two_digit"] for r in checkpoint.MetricsLog(tmp_path / "metrics.jsonl").read()]
     assert two_digit[:3] == [rows] * 3             # the curriculum: two-digit targets only
     assert min(two_digit[3:]) < rows               # then every target again (seeded: some one-digit)
+
+
+def test_a_ramped_curriculum_lets_the_other_targets_in_step_by_step(tmp_path, monkeypatch):
+    from course_utils import train
+    from course_utils.config import load_config
+
+    scales = []
+    batch = train.curriculum.TargetPriority.batch
+    monkeypatch.setattr(train.curriculum.TargetPriority, "batch", lambda self, *a, only=None,
+                        others_scale=0.0, **k: (scales.append(others_scale if only else None),
+                                                batch(self, *a, only=only, others_scale=others_scale, **k))[1])
+    cfg = load_config("smoke", out_dir=str(tmp_path), digit_sum_min=3, digit_sum_max=12,
+                      target_sampling="prioritized", hard_first_steps=4, hard_first_ramp=True,
+                      max_steps=6, train_prompts=32)
+    train.train(cfg, progress=False)
+    assert scales == [0.0, 0.25, 0.5, 0.75, None, None]   # k / hard_first_steps, then no curriculum
 
 
 def test_the_curriculum_resumes_bitwise_across_its_end(resume_pair):

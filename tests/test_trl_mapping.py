@@ -120,6 +120,9 @@ def test_the_curriculum_is_named_beside_the_prioritized_sampling_it_needs():
     _, left_out = trl_mapping.grpo_config_kwargs(cfg)
     assert left_out == ["target_sampling='prioritized' (TRL shuffles uniformly)",
                         "hard_first_steps=5 (TRL has no curriculum)"]
+    cfg = Config.from_dict({**PRESETS["cpu"], "target_sampling": "prioritized", "hard_first_steps": 5,
+                            "hard_first_ramp": True})
+    assert trl_mapping.grpo_config_kwargs(cfg)[1][-1] == "hard_first_steps=5, ramped (TRL has no curriculum)"
 
 
 def test_an_unresolved_precision_is_refused_and_a_resolved_one_used():
