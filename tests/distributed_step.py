@@ -56,6 +56,12 @@ def main(out: str, variant: str = "inverse_variance") -> None:
         control = policy.entropy_control.state_dict() if policy.entropy_control else {}
         print(json.dumps({"processes": acc.num_processes, **{k: metrics[k] for k in keep},
                           **{f"control_{k}": v for k, v in control.items()}}))
+    # Every rank waits here until rank 0 has saved and printed, then the process group is torn
+    # down explicitly: a rank that exits while gloo's threads still talk to the other aborts
+    # ("terminate called without an active exception").
+    acc.wait_for_everyone()
+    if torch.distributed.is_initialized():
+        torch.distributed.destroy_process_group()
 
 
 if __name__ == "__main__":
