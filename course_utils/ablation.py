@@ -244,6 +244,44 @@ def against_preset(runs: list[Path], result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def seed_table(runs: list[Path], level: float = 0.95) -> str:
+    """One recipe over several seeds (one run per seed): a markdown table of each seed's
+    held-out greedy pass rates (both constraints, then split by the digits a target needs), its
+    distinct completions, its most frequent one, how many sampled completions passed a two-digit
+    target in training, how its last steps look (``probe_outcome``), and its wall time; then the mean over seeds with a Student-t interval on
+    n - 1 degrees of freedom (clipped to the possible 0-100%), and the worst seed. Nothing here
+    is paired: it describes one arm."""
+    if len(runs) < 2:
+        raise ValueError(f"a seed table needs at least 2 runs, got {len(runs)}")
+    keys = ("pass_both", "pass_both_one_digit", "pass_both_two_digit")
+    lines = ["| seed | held-out greedy pass (both) | one-digit targets | two-digit targets | distinct "
+             "completions | most frequent completion | two-digit passes sampled in training | how "
+             "it ended | seconds |", "|" + "---|" * 9]
+    values: dict[str, list[float]] = {k: [] for k in keys}
+    for run in runs:
+        config = json.loads((run / "config.json").read_text())
+        summary = json.loads((run / "summary.json").read_text())
+        after, steps = summary["after"]["greedy"], records(run)
+        for k in keys:
+            values[k].append(after[k])
+        top = top_completion(after["samples"]).strip().replace("|", "/").replace("\n", " ")
+        lines.append(f"| {config['seed']} | {after['pass_both']:.1%} | {after['pass_both_one_digit']:.1%} | "
+                     f"{after['pass_both_two_digit']:.1%} | {after['distinct_completions']} of "
+                     f"{len(after['samples'])} | `{top}` | {sum(r['passes_two_digit'] for r in steps)} of "
+                     f"{sum(r['samples_two_digit'] for r in steps)} | {probe_outcome(steps)} | "
+                     f"{summary['seconds']:.0f} |")
+    n = len(runs)
+    t = stats.t_quantile(0.5 + level / 2, n - 1)
+
+    def mean_cell(k: str) -> str:
+        m, half = statistics.fmean(values[k]), t * statistics.stdev(values[k]) / math.sqrt(n)
+        return f"{m:.1%} [{max(0.0, m - half):.1%}, {min(1.0, m + half):.1%}]"
+    lines.append(f"| mean, {level:.0%} t-interval ({n - 1} df) | " +
+                 " | ".join(mean_cell(k) for k in keys) + " | | | | | |")
+    lines.append("| worst seed | " + " | ".join(f"{min(values[k]):.1%}" for k in keys) + " | | | | | |")
+    return "\n".join(lines) + "\n"
+
+
 def template_probe_logs(folder: Path) -> str:
     """What the template probes' training logs say about the two-digit targets: how many
     completions were sampled for them and how many passed, their share of the samples early and

@@ -167,6 +167,18 @@ def counted_kl_runs() -> list[Path]:
     return sorted((RESULTS / "counted-probes").glob("steps150-counted-prioritized-adaptive-kl-seed*"))
 
 
+def fresh_runs() -> list[Path]:
+    """The counted-KL recipe, frozen, on fresh seeds never used to choose it (lesson 7, 6.5)."""
+    return sorted((RESULTS / "fresh-seeds").glob("counted-kl-seed*"),
+                  key=lambda p: int(p.name.removeprefix("counted-kl-seed")))
+
+
+def fresh_markdown() -> str:
+    """The frozen recipe's table over the fresh seeds (``ablation.seed_table``)."""
+    from course_utils import ablation
+    return ablation.seed_table(fresh_runs())
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -240,6 +252,10 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "COUNTED_BY_TARGET", ablation.completions_by_target(kl_runs))
         stored = json.loads((RESULTS / "ablation" / "result.json").read_text())
         text = fill_markdown(text, "COUNTED_VS_PRESET", ablation.against_preset(kl_runs, stored))
+    if "{{FRESH_SEEDS}}" in text:
+        from course_utils import ablation
+        text = fill_markdown(text, "FRESH_SEEDS", fresh_markdown())
+        text = fill_markdown(text, "FRESH_BY_TARGET", ablation.completions_by_target(fresh_runs()))
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
@@ -310,7 +326,8 @@ def trl_markdown() -> str:
 # README sections rendered from stored results: <!-- results: NAME --> ... <!-- end results -->
 README_RESULTS = {"cpu": lambda: demoted((RESULTS / "cpu" / "report.md").read_text().strip(), 2),
                   "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip(),
-                  "timings": timings_markdown, "trl": trl_markdown}
+                  "timings": timings_markdown, "trl": trl_markdown,
+                  "fresh": lambda: fresh_markdown().strip()}
 
 
 # A figure in the README's prose: <!-- fig: NAME -->VALUE<!-- end fig -->, VALUE rendered from

@@ -343,6 +343,28 @@ def probe_figures(recipe_passed: list[float]) -> dict[str, str]:
             "probes.cap_share": f"{ablation.CAP_FILLING['min_truncated_frac']:.0%}"}
 
 
+def fresh_figures() -> dict[str, str]:
+    """Lesson 7, section 6.5, and the README: the counted-KL recipe, frozen, on fresh seeds
+    (``notebooks/results/fresh-seeds``), against the same recipe on its tuning seeds."""
+    from course_utils import ablation
+
+    fresh = sorted((RESULTS / "fresh-seeds").glob("counted-kl-seed*"),
+                   key=lambda p: int(p.name.removeprefix("counted-kl-seed")))
+    tuning = sorted((RESULTS / "counted-probes").glob("steps150-counted-prioritized-adaptive-kl-seed*"))
+    after = lambda run: _json(f"{run.parent.name}/{run.name}/summary.json")["after"]["greedy"]  # noqa: E731
+    seeds = [_json(f"fresh-seeds/{run.name}/config.json")["seed"] for run in fresh]
+    endings = [ablation.probe_outcome(ablation.records(run)) for run in fresh]
+    return {"fresh.seed_list": _seeds(seeds),
+            "fresh.seeds": _word(len(fresh)),
+            "fresh.mean": f"{statistics.mean(after(r)['pass_both'] for r in fresh):.1%}",
+            "fresh.two_digit_mean": f"{statistics.mean(after(r)['pass_both_two_digit'] for r in fresh):.1%}",
+            "fresh.worst": f"{min(after(r)['pass_both'] for r in fresh):.1%}",
+            "fresh.tuning_mean": f"{statistics.mean(after(r)['pass_both'] for r in tuning):.1%}",
+            "fresh.tuning_worst": f"{min(after(r)['pass_both'] for r in tuning):.1%}",
+            # how many fresh seeds ended filling the token cap (ablation.probe_outcome's rule)
+            "fresh.cap_filling": _word(endings.count("filling the token cap"))}
+
+
 def data_figures() -> dict[str, str]:
     """The offline prompt set: how many snippets the held-out prompts are built from."""
     from course_utils import data
@@ -352,7 +374,8 @@ def data_figures() -> dict[str, str]:
 
 
 def figures() -> dict[str, str]:
-    return {**plan_figures(), **gpu_check_figures(), **track_figures(), **cpu_run_figures(), **data_figures()}
+    return {**plan_figures(), **gpu_check_figures(), **track_figures(), **cpu_run_figures(), **data_figures(),
+            **fresh_figures()}
 
 
 def fill(text: str, source: str) -> str:
