@@ -179,6 +179,14 @@ def fresh_markdown() -> str:
     return ablation.seed_table(fresh_runs())
 
 
+def fresh_vs_preset_markdown() -> str:
+    """The frozen recipe minus the cpu preset, paired over the fresh seeds
+    (``notebooks/results/fresh-seeds/preset``: ``python -m course_utils.ablation`` on those seeds)."""
+    from course_utils import ablation
+    stored = json.loads((RESULTS / "fresh-seeds" / "preset" / "result.json").read_text())
+    return ablation.against_preset(fresh_runs(), stored)
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -256,6 +264,7 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         from course_utils import ablation
         text = fill_markdown(text, "FRESH_SEEDS", fresh_markdown())
         text = fill_markdown(text, "FRESH_BY_TARGET", ablation.completions_by_target(fresh_runs()))
+        text = fill_markdown(text, "FRESH_VS_PRESET", fresh_vs_preset_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
@@ -327,7 +336,8 @@ def trl_markdown() -> str:
 README_RESULTS = {"cpu": lambda: demoted((RESULTS / "cpu" / "report.md").read_text().strip(), 2),
                   "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip(),
                   "timings": timings_markdown, "trl": trl_markdown,
-                  "fresh": lambda: fresh_markdown().strip()}
+                  "fresh": lambda: fresh_markdown().strip(),
+                  "fresh-vs-preset": lambda: fresh_vs_preset_markdown().strip()}
 
 
 # A figure in the README's prose: <!-- fig: NAME -->VALUE<!-- end fig -->, VALUE rendered from

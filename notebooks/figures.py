@@ -10,6 +10,7 @@ result changes the sentence that quotes it.
 from __future__ import annotations
 
 import json
+import math
 import re
 import statistics
 from pathlib import Path
@@ -354,6 +355,11 @@ def fresh_figures() -> dict[str, str]:
     after = lambda run: _json(f"{run.parent.name}/{run.name}/summary.json")["after"]["greedy"]  # noqa: E731
     seeds = [_json(f"fresh-seeds/{run.name}/config.json")["seed"] for run in fresh]
     endings = [ablation.probe_outcome(ablation.records(run)) for run in fresh]
+    # the cpu preset on the same fresh seeds (python -m course_utils.ablation --seeds 10 ... 14)
+    preset = _json("fresh-seeds/preset/result.json")
+    if preset["seeds"] != seeds:
+        raise ValueError(f"the preset's fresh-seed runs have seeds {preset['seeds']}, the recipe's {seeds}")
+    preset_passed = [run["pass_both"] for run in preset["arms"][ablation.FULL]["runs"]]
     return {"fresh.seed_list": _seeds(seeds),
             "fresh.seeds": _word(len(fresh)),
             "fresh.mean": f"{statistics.mean(after(r)['pass_both'] for r in fresh):.1%}",
@@ -362,7 +368,26 @@ def fresh_figures() -> dict[str, str]:
             "fresh.tuning_mean": f"{statistics.mean(after(r)['pass_both'] for r in tuning):.1%}",
             "fresh.tuning_worst": f"{min(after(r)['pass_both'] for r in tuning):.1%}",
             # how many fresh seeds ended filling the token cap (ablation.probe_outcome's rule)
-            "fresh.cap_filling": _word(endings.count("filling the token cap"))}
+            "fresh.cap_filling": _word(endings.count("filling the token cap")),
+            # seeds whose greedy replies pass every one-digit target held out
+            "fresh.template_seeds": _word(sum(after(r)["pass_both_one_digit"] == 1 for r in fresh)),
+            "fresh.tuning_template_seeds": _word(sum(after(r)["pass_both_one_digit"] == 1 for r in tuning)),
+            "fresh.tuning_seeds": _word(len(tuning)),
+            "fresh.preset_mean": f"{statistics.mean(preset_passed):.1%}",
+            "fresh.preset_worst": f"{min(preset_passed):.1%}",
+            "fresh.order_chance": _order_chance([after(r)["pass_both"] for r in tuning],
+                                                [after(r)["pass_both"] for r in fresh])}
+
+
+def _order_chance(tuning: list[float], fresh: list[float]) -> str:
+    """Lesson 7, 6.5: every tuning seed passes more than every fresh seed. Were the labels
+    exchangeable (tuning no better than fresh), each of the C(n, k) ways to pick which k of the
+    n seeds are the tuning ones would be equally likely, and exactly one puts all k on top: an
+    exact one-sided permutation p-value of 1 / C(n, k)."""
+    if min(tuning) <= max(fresh):
+        raise ValueError("lesson 7 says every tuning seed passes more than every fresh seed; "
+                         f"tuning {tuning}, fresh {fresh}")
+    return f"1 in {math.comb(len(tuning) + len(fresh), len(tuning))}"
 
 
 def data_figures() -> dict[str, str]:

@@ -338,3 +338,13 @@ def test_the_readmes_presets_table_matches_the_config():
     assert f"micro-batches of {per_micro} prompt{'s' * (per_micro > 1)} x {t4.group_size}" in rows["t4"]
     assert f"{t4.total_steps * t4.prompts_per_step:,} prompts" in rows["t4"]
     assert f"{gpt2.target_chars}-character target, batch {gpt2.prompts_per_step}" in rows["gpt2-rtx4070"]
+
+
+def test_the_order_chance_is_the_exact_permutation_p_and_refuses_an_ordering_that_does_not_hold():
+    # 3 tuning seeds all above 5 fresh ones: 1 of the C(8, 3) = 56 labellings puts them on top
+    assert figures._order_chance([0.9, 0.7, 0.8], [0.0, 0.1, 0.2, 0.3, 0.6]) == "1 in 56"
+    assert figures._order_chance([0.5, 0.6], [0.1, 0.2]) == "1 in 6"
+    with pytest.raises(ValueError, match="every tuning seed passes more"):
+        figures._order_chance([0.9, 0.2], [0.3, 0.1])
+    with pytest.raises(ValueError, match="every tuning seed passes more"):  # a tie is not "more"
+        figures._order_chance([0.5, 0.9], [0.5, 0.1])

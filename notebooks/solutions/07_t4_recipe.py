@@ -582,7 +582,7 @@ for key, value in mine.items():
 # different set of training prompts the policy found the cap itself, stopped emitting the
 # end-of-sequence token and filled the 24 tokens with noise of about the right length, which the
 # checker scores like any text. DAPO's overlong filtering (`overlong_filter=True`: a completion
-# cut off at `max_new_tokens` gets no loss) removes that incentive, but the one run with it
+# cut off at `max_new_tokens` gets no loss) removes that incentive, but the run with it here
 # drifted into noise anyway. Both runs' metrics are in `notebooks/results/failed-runs/`. The
 # other levers the literature offers (a lower temperature, a higher learning rate, a KL term to
 # the pre-trained model, clip-higher with several updates per batch) were each probed on one
@@ -818,12 +818,133 @@ for key, value in mine.items():
 #
 # Read that as tuning evidence, not as a comparison of levers: the runs differ from the preset
 # in several settings at once and in their number of steps, the changes were chosen while
-# looking at seed 0, and every seed here is a tuning seed. The `cpu` preset keeps its recipe
-# until one is frozen and reported once on fresh seeds, paired against the preset, with each
-# lever removed on its own. The leads the runs point to: exploration that outlasts the first
-# number found (the logs give each seed's entropy late in the run, and how high the adaptive
-# weight climbed), larger groups for the unsolved targets, and a warm start as a labelled
-# comparison (what supervision alone reaches, and what GRPO adds).
+# looking at seed 0, and every seed here is a tuning seed. The next section freezes the recipe
+# and runs it where it chose nothing.
+#
+# ### 6.5 The recipe frozen, on seeds that chose nothing
+#
+# Every setting above was kept because it looked good on seeds 0, 1 and 2, so a result
+# reported on those seeds is optimistic (the winner's curse of any search, however small). The
+# test that counts: freeze the recipe, the counted-credit runs with the KL term exactly as they
+# are, and run it once on seeds 10, 11, 12, 13 and 14, which were never looked at while
+# choosing anything. Nothing was changed after seeing them, and all five are
+# reported. Held out, greedy, one run per seed (the mean's interval is Student's t on n - 1
+# degrees of freedom, `ablation.seed_table`):
+#
+# | seed | held-out greedy pass (both) | one-digit targets | two-digit targets | distinct completions | most frequent completion | two-digit passes sampled in training | how it ended | seconds |
+# |---|---|---|---|---|---|---|---|---|
+# | 10 | 0.0% | 0.0% | 0.0% | 25 of 64 | `BILLY: 11:11  BILLY: 11:11` | 3 of 1464 | filling the token cap | 1447 |
+# | 11 | 6.2% | 8.2% | 0.0% | 23 of 64 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` | 24 of 1464 | filling the token cap | 1496 |
+# | 12 | 3.1% | 5.4% | 0.0% | 38 of 64 | `The most important 19re, no.` | 10 of 1536 | still exploring | 1242 |
+# | 13 | 4.7% | 7.1% | 0.0% | 2 of 64 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` | 13 of 1432 | filling the token cap | 1504 |
+# | 14 | 62.5% | 100.0% | 0.0% | 15 of 64 | `Repetitions only.  32 characters.` | 6 of 1416 | still exploring | 1269 |
+# | mean, 95% t-interval (4 df) | 15.3% [0.0%, 48.2%] | 24.1% [0.0%, 76.9%] | 0.0% [0.0%, 0.0%] | | | | | |
+# | worst seed | 0.0% | 0.0% | 0.0% | | | | | |
+#
+# On its tuning seeds the recipe passed 78.1% of the held-out prompts on
+# average (worst seed 71.9%); on the fresh seeds it passes
+# 15.3% (worst seed 0.0%), and no fresh seed's greedy replies pass a
+# single held-out two-digit target (sampled replies in training did, a few times on each seed,
+# as the table's column says). Every tuning seed passes more than every fresh seed. Had being a
+# tuning seed made no difference, that ordering would have a chance of 1 in 56
+# (an exact permutation test: each choice of which three of the runs are the
+# tuning ones is equally likely, and one puts them all on top). Two causes are mixed in that gap,
+# and these runs cannot separate them: the winner's curse, and the machine, since the fresh
+# runs ran on a different CPU, whose matrix kernels change the arithmetic and so, as section 6.3
+# showed, the path a sampled run takes.
+#
+# Of the fresh seeds, one did what two of the
+# three tuning seeds did: a template that passes every one-digit target
+# held out. Of the five, three ended *filling the token cap*
+# (over the last 5 logged steps, at least 90% of the
+# sampled replies ran to `max_new_tokens`): the same way out that section 6.2's failed runs and
+# section 6.3's temperature probe took. A policy that never emits the end-of-sequence token lets
+# the cap of `max_new_tokens` tokens end every reply, and if its tokens are short, the cut falls
+# near the target length: the cut does the length constraint's work, and the checker scores the
+# cut text like any other. What those seeds fill the cap with differs (the table below shows
+# it): on one, runs of single digits and `+` signs, the same two strings for every target; on
+# the others, repeated words and numbers. None of them learned to stop, and a reply
+# that does not depend on the target can pass at most the targets its digits happen to add up to.
+# What each fresh seed writes, per target:
+#
+# | target digit sum | seed 10: passed | most frequent completion (its digit sum) | seed 11: passed | most frequent completion (its digit sum) | seed 12: passed | most frequent completion (its digit sum) | seed 13: passed | most frequent completion (its digit sum) | seed 14: passed | most frequent completion (its digit sum) |
+# |---|---|---|---|---|---|---|---|---|---|---|
+# | 3 | 0 of 4 | `The 3: 1
+#
+# BILLY: 1.
+#
+# BILLY: 2.` (7) | 3 of 6 | `The 100 * 0 * 0 * 10 = 100 * 0 *` (3) | 1 of 5 | `The old mill 3ft by 2, no.` (5) | 0 of 5 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 6 of 6 | `Repetitions only.  3 characters.` (3) |
+# | 4 | 0 of 6 | `BONUS: 11:11
+#
+# Lad: 11:11
+#
+# L` (8) | 1 of 6 | `The 100 * 0 * 0 * 0 * 100 = 0 *` (2) | 0 of 6 | `The most important 4re is.` (4) | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  4 characters.` (4) |
+# | 5 | 0 of 7 | `BILLY: 11:11
+#
+# BILLY: 11:11` (8) | 0 of 10 | `The 10 * 0 * 0 * 0 * 10 * 10 * 1` (4) | 0 of 6 | `The most important 5re is.` (5) | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 6 of 6 | `Repetitions only.  5 characters.` (5) |
+# | 6 | 0 of 8 | `BILLY: 11:11
+#
+# BILLY: 11:11` (8) | 0 of 4 | `The 0000 * 0 * 0 * 100 = 0 * 0 *` (1) | 0 of 7 | `The most important 6n is.` (6) | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 3 of 3 | `Repetitions only,  6 characters.` (6) |
+# | 7 | 0 of 10 | `The 32 
+# A: 
+# A: 
+# B: 
+# C: 
+# D:` (5) | 0 of 6 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The most important 7re no. no.` (7) | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 8 of 8 | `Repetitions only.  7 characters.` (7) |
+# | 8 | 0 of 9 | `BILLY: 11:11
+#
+# BILLY: 11:11` (8) | 0 of 10 | `10 * 0 * 0 * 1 = 0 * 1 = 10 * 1` (5) | 1 of 3 | `The most important 8girls  said.` (8) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  8 characters.` (8) |
+# | 9 | 0 of 4 | `The 32 
+# A: 
+# A: 
+# B: 
+# C: 
+# D:` (5) | 0 of 7 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The old lady with 9re no more.` (9) | 0 of 6 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 9 of 9 | `Repetitions only.  9 characters.` (9) |
+# | 10 | 0 of 4 | `The 32
+#
+# The 32
+#
+# BILLY: 1111
+#
+# B` (14) | 0 of 6 | `The 10 * 0 + 0 * 10 = 10 * 0 + 1` (4) | 0 of 9 | `The most important 19re, no.` (10) | 0 of 9 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `Repetitions only.  32 characters.` (5) |
+# | 11 | 0 of 4 | `BILLY: 11 
+# BILLY: 11 
+# BILLY: 1` (5) | 0 of 4 | `The 10 * 0 * 0 * 0 * 1 * 1 * 1 *` (4) | 0 of 10 | `The most important 19re, no.` (10) | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `Repetitions only.  32 characters.` (5) |
+# | 12 | 0 of 8 | `The 32
+#
+# Lad: 32
+#
+# Lad: 12
+#
+# Lad` (13) | 0 of 5 | `The 12 * 0 * 0 * 0 * 12 * 0 * 1 *` (7) | 0 of 8 | `The most important 19g is.` (10) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 11 | `Repetitions only.  32 characters.` (5) |
+#
+# The `cpu` preset, run on the same fresh seeds and scored on the same held-out prompts, is
+# the comparison that says whether the frozen recipe is worth its extra steps. Paired by seed
+# (`stats.paired`: the t-interval on n - 1 degrees of freedom, an exact sign-flip test, and the
+# smallest difference these seeds could detect), the recipe minus the preset:
+#
+# - both constraints (seed 10: 0.0% vs 78.1%, seed 11: 6.2% vs 0.0%, seed 12: 3.1% vs 0.0%, seed 13: 4.7% vs 0.0%, seed 14: 62.5% vs 3.1%): per-seed differences [-78.1%, +6.2%, +3.1%, +4.7%, +59.4%], mean -0.9%, 95% t-interval [-62.1%, +60.2%] (4 df), sign-flip p = 1 (its smallest possible with 5 seeds: 0.0625); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 81.8% at 80% power if the true spread were the observed one, itself a rough estimate from 4 df)
+# - two-digit targets (seed 10: 0.0% vs 12.5%, seed 11: 0.0% vs 0.0%, seed 12: 0.0% vs 0.0%, seed 13: 0.0% vs 0.0%, seed 14: 0.0% vs 0.0%): per-seed differences [-12.5%, +0.0%, +0.0%, +0.0%, +0.0%], mean -2.5%, 95% t-interval [-9.4%, +4.4%] (4 df), sign-flip p = 1 (its smallest possible with 1 of 5 seeds differing: 1); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 9.3% at 80% power if the true spread were the observed one, itself a rough estimate from 4 df)
+#
+# No difference detected, and with five seeds whose outcomes spread this widely, none of the
+# size that matters could have been (the smallest detectable difference is printed beside each
+# line). The preset, too, passes less on the fresh seeds than on the seeds its levers were
+# chosen on: 50.5% on average there (section 6.3), 16.2%
+# on the fresh ones (worst seed 0.0%). Read this pairing with its confound: the preset's
+# fresh runs ran in fp32 with the reference kernels on a CPU without bf16 units, the recipe's in
+# bf16 with the fast kernels on another, so each difference is a recipe and a machine at once.
+#
+# Three lessons for any RL result, not only this one. A recipe chosen on a few seeds and
+# reported on them says little about the next seed: report it on seeds that chose nothing. The
+# spread between seeds is the result, not noise around it; one seed's run is a draw from it, and
+# this task's draws range from a template that passes every one-digit target to a policy that
+# never stops. And anything outside the reward that happens to satisfy a constraint (here the
+# token cap) is part of what the policy optimizes: on some seeds GRPO finds it before it finds
+# the end-of-sequence token. The `cpu` preset keeps its recipe. The leads these runs point to: a
+# cap the hack cannot use (a completion cut off at `max_new_tokens` scored as a failure, or
+# DAPO's overlong filtering, which section 6.2's run with it shows is not enough on its own), exploration that
+# outlasts the first number found, larger groups for the unsolved targets, and a warm start as
+# a labelled comparison (what supervision alone reaches, and what GRPO adds).
 #
 # The next cell re-runs the ablation: shrunk to seconds on the tiny model in smoke mode, and
 # with real weights only if you set `RUN_EXPERIMENTS = True` (it is the main job several times

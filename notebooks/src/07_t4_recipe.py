@@ -446,7 +446,7 @@ for key, value in mine.items():
 # different set of training prompts the policy found the cap itself, stopped emitting the
 # end-of-sequence token and filled the 24 tokens with noise of about the right length, which the
 # checker scores like any text. DAPO's overlong filtering (`overlong_filter=True`: a completion
-# cut off at `max_new_tokens` gets no loss) removes that incentive, but the one run with it
+# cut off at `max_new_tokens` gets no loss) removes that incentive, but the run with it here
 # drifted into noise anyway. Both runs' metrics are in `notebooks/results/failed-runs/`. The
 # other levers the literature offers (a lower temperature, a higher learning rate, a KL term to
 # the pre-trained model, clip-higher with several updates per batch) were each probed on one
@@ -635,12 +635,75 @@ for key, value in mine.items():
 #
 # Read that as tuning evidence, not as a comparison of levers: the runs differ from the preset
 # in several settings at once and in their number of steps, the changes were chosen while
-# looking at seed 0, and every seed here is a tuning seed. The `cpu` preset keeps its recipe
-# until one is frozen and reported once on fresh seeds, paired against the preset, with each
-# lever removed on its own. The leads the runs point to: exploration that outlasts the first
-# number found (the logs give each seed's entropy late in the run, and how high the adaptive
-# weight climbed), larger groups for the unsolved targets, and a warm start as a labelled
-# comparison (what supervision alone reaches, and what GRPO adds).
+# looking at seed 0, and every seed here is a tuning seed. The next section freezes the recipe
+# and runs it where it chose nothing.
+#
+# ### 6.5 The recipe frozen, on seeds that chose nothing
+#
+# Every setting above was kept because it looked good on seeds 0, 1 and 2, so a result
+# reported on those seeds is optimistic (the winner's curse of any search, however small). The
+# test that counts: freeze the recipe, the counted-credit runs with the KL term exactly as they
+# are, and run it once on seeds {{fig:fresh.seed_list}}, which were never looked at while
+# choosing anything. Nothing was changed after seeing them, and all {{fig:fresh.seeds}} are
+# reported. Held out, greedy, one run per seed (the mean's interval is Student's t on n - 1
+# degrees of freedom, `ablation.seed_table`):
+#
+# {{FRESH_SEEDS}}
+#
+# On its tuning seeds the recipe passed {{fig:fresh.tuning_mean}} of the held-out prompts on
+# average (worst seed {{fig:fresh.tuning_worst}}); on the fresh seeds it passes
+# {{fig:fresh.mean}} (worst seed {{fig:fresh.worst}}), and no fresh seed's greedy replies pass a
+# single held-out two-digit target (sampled replies in training did, a few times on each seed,
+# as the table's column says). Every tuning seed passes more than every fresh seed. Had being a
+# tuning seed made no difference, that ordering would have a chance of {{fig:fresh.order_chance}}
+# (an exact permutation test: each choice of which {{fig:fresh.tuning_seeds}} of the runs are the
+# tuning ones is equally likely, and one puts them all on top). Two causes are mixed in that gap,
+# and these runs cannot separate them: the winner's curse, and the machine, since the fresh
+# runs ran on a different CPU, whose matrix kernels change the arithmetic and so, as section 6.3
+# showed, the path a sampled run takes.
+#
+# Of the fresh seeds, {{fig:fresh.template_seeds}} did what {{fig:fresh.tuning_template_seeds}} of the
+# {{fig:fresh.tuning_seeds}} tuning seeds did: a template that passes every one-digit target
+# held out. Of the {{fig:fresh.seeds}}, {{fig:fresh.cap_filling}} ended *filling the token cap*
+# (over the last {{fig:probes.window}} logged steps, at least {{fig:probes.cap_share}} of the
+# sampled replies ran to `max_new_tokens`): the same way out that section 6.2's failed runs and
+# section 6.3's temperature probe took. A policy that never emits the end-of-sequence token lets
+# the cap of `max_new_tokens` tokens end every reply, and if its tokens are short, the cut falls
+# near the target length: the cut does the length constraint's work, and the checker scores the
+# cut text like any other. What those seeds fill the cap with differs (the table below shows
+# it): on one, runs of single digits and `+` signs, the same two strings for every target; on
+# the others, repeated words and numbers. None of them learned to stop, and a reply
+# that does not depend on the target can pass at most the targets its digits happen to add up to.
+# What each fresh seed writes, per target:
+#
+# {{FRESH_BY_TARGET}}
+#
+# The `cpu` preset, run on the same fresh seeds and scored on the same held-out prompts, is
+# the comparison that says whether the frozen recipe is worth its extra steps. Paired by seed
+# (`stats.paired`: the t-interval on n - 1 degrees of freedom, an exact sign-flip test, and the
+# smallest difference these seeds could detect), the recipe minus the preset:
+#
+# {{FRESH_VS_PRESET}}
+#
+# No difference detected, and with {{fig:fresh.seeds}} seeds whose outcomes spread this widely, none of the
+# size that matters could have been (the smallest detectable difference is printed beside each
+# line). The preset, too, passes less on the fresh seeds than on the seeds its levers were
+# chosen on: {{fig:ablation.recipe_mean}} on average there (section 6.3), {{fig:fresh.preset_mean}}
+# on the fresh ones (worst seed {{fig:fresh.preset_worst}}). Read this pairing with its confound: the preset's
+# fresh runs ran in fp32 with the reference kernels on a CPU without bf16 units, the recipe's in
+# bf16 with the fast kernels on another, so each difference is a recipe and a machine at once.
+#
+# Three lessons for any RL result, not only this one. A recipe chosen on a few seeds and
+# reported on them says little about the next seed: report it on seeds that chose nothing. The
+# spread between seeds is the result, not noise around it; one seed's run is a draw from it, and
+# this task's draws range from a template that passes every one-digit target to a policy that
+# never stops. And anything outside the reward that happens to satisfy a constraint (here the
+# token cap) is part of what the policy optimizes: on some seeds GRPO finds it before it finds
+# the end-of-sequence token. The `cpu` preset keeps its recipe. The leads these runs point to: a
+# cap the hack cannot use (a completion cut off at `max_new_tokens` scored as a failure, or
+# DAPO's overlong filtering, which section 6.2's run with it shows is not enough on its own), exploration that
+# outlasts the first number found, larger groups for the unsolved targets, and a warm start as
+# a labelled comparison (what supervision alone reaches, and what GRPO adds).
 #
 # The next cell re-runs the ablation: shrunk to seconds on the tiny model in smoke mode, and
 # with real weights only if you set `RUN_EXPERIMENTS = True` (it is the main job several times
