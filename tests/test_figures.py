@@ -348,3 +348,17 @@ def test_the_order_chance_is_the_exact_permutation_p_and_refuses_an_ordering_tha
         figures._order_chance([0.9, 0.2], [0.3, 0.1])
     with pytest.raises(ValueError, match="every tuning seed passes more"):  # a tie is not "more"
         figures._order_chance([0.5, 0.9], [0.5, 0.1])
+
+
+def test_the_order_chance_matches_a_brute_force_permutation_test():
+    # a second implementation: enumerate every way to label k of the n values "tuning" and count
+    # the labellings whose tuning values are all above all the others
+    import itertools
+    import math
+    tuning, fresh = [0.891, 0.719, 0.734], [0.0, 0.062, 0.031, 0.047, 0.625]
+    values = tuning + fresh
+    splits = list(itertools.combinations(range(len(values)), len(tuning)))
+    on_top = sum(min(values[i] for i in s) > max(values[j] for j in range(len(values)) if j not in s)
+                 for s in splits)
+    assert on_top == 1 and figures._order_chance(tuning, fresh) == f"1 in {len(splits)}"
+    assert len(splits) == math.comb(8, 3)
