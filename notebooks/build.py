@@ -162,29 +162,16 @@ def template_probes_markdown() -> str:
     return ablation.template_probes(RESULTS / "template-probes")
 
 
-def counted_kl_runs() -> list[Path]:
-    """The counted-credit runs with the KL term, one per tuning seed (lesson 7, 6.4)."""
-    return sorted((RESULTS / "counted-probes").glob("steps150-counted-prioritized-adaptive-kl-seed*"))
-
-
-def fresh_runs() -> list[Path]:
-    """The counted-KL recipe, frozen, on fresh seeds never used to choose it (lesson 7, 6.5)."""
-    return sorted((RESULTS / "fresh-seeds").glob("counted-kl-seed*"),
-                  key=lambda p: int(p.name.removeprefix("counted-kl-seed")))
-
-
 def fresh_markdown() -> str:
     """The frozen recipe's table over the fresh seeds (``ablation.seed_table``)."""
     from course_utils import ablation
-    return ablation.seed_table(fresh_runs())
+    return ablation.seed_table(figures.fresh_runs())
 
 
 def fresh_vs_preset_markdown() -> str:
-    """The frozen recipe minus the cpu preset, paired over the fresh seeds
-    (``notebooks/results/fresh-seeds/preset``: ``python -m course_utils.ablation`` on those seeds)."""
+    """The frozen recipe minus the cpu preset, paired over the fresh seeds."""
     from course_utils import ablation
-    stored = json.loads((RESULTS / "fresh-seeds" / "preset" / "result.json").read_text())
-    return ablation.against_preset(fresh_runs(), stored)
+    return ablation.against_preset(figures.fresh_runs(), figures.fresh_preset())
 
 
 def fill_markdown(text: str, key: str, content: str) -> str:
@@ -256,14 +243,14 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "COUNTED_PROBES", ablation.template_probes(RESULTS / "counted-probes"))
         text = fill_markdown(text, "COUNTED_PROBE_LOGS",
                              ablation.template_probe_logs(RESULTS / "counted-probes"))
-        kl_runs = counted_kl_runs()
+        kl_runs = figures.counted_kl_runs()
         text = fill_markdown(text, "COUNTED_BY_TARGET", ablation.completions_by_target(kl_runs))
         stored = json.loads((RESULTS / "ablation" / "result.json").read_text())
         text = fill_markdown(text, "COUNTED_VS_PRESET", ablation.against_preset(kl_runs, stored))
     if "{{FRESH_SEEDS}}" in text:
         from course_utils import ablation
         text = fill_markdown(text, "FRESH_SEEDS", fresh_markdown())
-        text = fill_markdown(text, "FRESH_BY_TARGET", ablation.completions_by_target(fresh_runs()))
+        text = fill_markdown(text, "FRESH_BY_TARGET", ablation.completions_by_target(figures.fresh_runs()))
         text = fill_markdown(text, "FRESH_VS_PRESET", fresh_vs_preset_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)

@@ -344,39 +344,56 @@ def probe_figures(recipe_passed: list[float]) -> dict[str, str]:
             "probes.cap_share": f"{ablation.CAP_FILLING['min_truncated_frac']:.0%}"}
 
 
+def counted_kl_runs() -> list[Path]:
+    """The counted-credit runs with the KL term, one per tuning seed (lesson 7, 6.4)."""
+    return sorted((RESULTS / "counted-probes").glob("steps150-counted-prioritized-adaptive-kl-seed*"))
+
+
+def fresh_runs() -> list[Path]:
+    """The counted-KL recipe, frozen, on fresh seeds never used to choose it (lesson 7, 6.5)."""
+    return sorted((RESULTS / "fresh-seeds").glob("counted-kl-seed*"),
+                  key=lambda p: int(p.name.removeprefix("counted-kl-seed")))
+
+
+def fresh_preset() -> dict:
+    """The cpu preset on the same fresh seeds, as ``python -m course_utils.ablation --seeds 10 11
+    12 13 14 --arms "full recipe (the cpu preset)" --out notebooks/results/fresh-seeds/preset``
+    stored it (its result.json)."""
+    return _json("fresh-seeds/preset/result.json")
+
+
 def fresh_figures() -> dict[str, str]:
     """Lesson 7, section 6.5, and the README: the counted-KL recipe, frozen, on fresh seeds
-    (``notebooks/results/fresh-seeds``), against the same recipe on its tuning seeds."""
+    (``notebooks/results/fresh-seeds``), against the same recipe on its tuning seeds and the
+    cpu preset on the fresh ones."""
     from course_utils import ablation
 
-    fresh = sorted((RESULTS / "fresh-seeds").glob("counted-kl-seed*"),
-                   key=lambda p: int(p.name.removeprefix("counted-kl-seed")))
-    tuning = sorted((RESULTS / "counted-probes").glob("steps150-counted-prioritized-adaptive-kl-seed*"))
+    fresh, tuning = fresh_runs(), counted_kl_runs()
     after = lambda run: _json(f"{run.parent.name}/{run.name}/summary.json")["after"]["greedy"]  # noqa: E731
+    fresh_after, tuning_after = [after(r) for r in fresh], [after(r) for r in tuning]
+    fresh_passed, tuning_passed = [a["pass_both"] for a in fresh_after], [a["pass_both"] for a in tuning_after]
     seeds = [_json(f"fresh-seeds/{run.name}/config.json")["seed"] for run in fresh]
     endings = [ablation.probe_outcome(ablation.records(run)) for run in fresh]
-    # the cpu preset on the same fresh seeds (python -m course_utils.ablation --seeds 10 ... 14)
-    preset = _json("fresh-seeds/preset/result.json")
+    preset = fresh_preset()
     if preset["seeds"] != seeds:
         raise ValueError(f"the preset's fresh-seed runs have seeds {preset['seeds']}, the recipe's {seeds}")
     preset_passed = [run["pass_both"] for run in preset["arms"][ablation.FULL]["runs"]]
     return {"fresh.seed_list": _seeds(seeds),
             "fresh.seeds": _word(len(fresh)),
-            "fresh.mean": f"{statistics.mean(after(r)['pass_both'] for r in fresh):.1%}",
-            "fresh.two_digit_mean": f"{statistics.mean(after(r)['pass_both_two_digit'] for r in fresh):.1%}",
-            "fresh.worst": f"{min(after(r)['pass_both'] for r in fresh):.1%}",
-            "fresh.tuning_mean": f"{statistics.mean(after(r)['pass_both'] for r in tuning):.1%}",
-            "fresh.tuning_worst": f"{min(after(r)['pass_both'] for r in tuning):.1%}",
+            "fresh.mean": f"{statistics.mean(fresh_passed):.1%}",
+            "fresh.two_digit_mean": f"{statistics.mean(a['pass_both_two_digit'] for a in fresh_after):.1%}",
+            "fresh.worst": f"{min(fresh_passed):.1%}",
+            "fresh.tuning_mean": f"{statistics.mean(tuning_passed):.1%}",
+            "fresh.tuning_worst": f"{min(tuning_passed):.1%}",
             # how many fresh seeds ended filling the token cap (ablation.probe_outcome's rule)
             "fresh.cap_filling": _word(endings.count("filling the token cap")),
             # seeds whose greedy replies pass every one-digit target held out
-            "fresh.template_seeds": _word(sum(after(r)["pass_both_one_digit"] == 1 for r in fresh)),
-            "fresh.tuning_template_seeds": _word(sum(after(r)["pass_both_one_digit"] == 1 for r in tuning)),
+            "fresh.template_seeds": _word(sum(a["pass_both_one_digit"] == 1 for a in fresh_after)),
+            "fresh.tuning_template_seeds": _word(sum(a["pass_both_one_digit"] == 1 for a in tuning_after)),
             "fresh.tuning_seeds": _word(len(tuning)),
             "fresh.preset_mean": f"{statistics.mean(preset_passed):.1%}",
             "fresh.preset_worst": f"{min(preset_passed):.1%}",
-            "fresh.order_chance": _order_chance([after(r)["pass_both"] for r in tuning],
-                                                [after(r)["pass_both"] for r in fresh])}
+            "fresh.order_chance": _order_chance(tuning_passed, fresh_passed)}
 
 
 def _order_chance(tuning: list[float], fresh: list[float]) -> str:
