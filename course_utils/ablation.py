@@ -203,15 +203,24 @@ def template_probes(folder: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def completions_by_target(runs: list[Path]) -> str:
+def _cell(text: str) -> str:
+    """A completion as one markdown table cell: no pipe, no line break."""
+    return text.replace("|", "/").replace("\n", " ")
+
+
+def completions_by_target(runs: list[Path], labels: list[str] | None = None) -> str:
     """What each run's policy writes per target digit sum (held-out, greedy): the prompts with
     that target, how many pass both constraints, and the most frequent completion with the digit
-    sum it has (a markdown table, one column group per run, read from stored summaries)."""
+    sum it has (a markdown table, one column group per run, read from stored summaries). Each
+    group is named by ``labels``, or by the run's seed."""
     afters = [json.loads((run / "summary.json").read_text())["after"]["greedy"]["samples"]
               for run in runs]
+    if labels is None:
+        labels = [f"seed {json.loads((run / 'config.json').read_text())['seed']}" for run in runs]
+    if len(labels) != len(runs):
+        raise ValueError(f"{len(labels)} labels for {len(runs)} runs")
     header = "| target digit sum | " + " | ".join(
-        f"seed {json.loads((run / 'config.json').read_text())['seed']}: passed | most frequent "
-        f"completion (its digit sum)" for run in runs) + " |"
+        f"{label}: passed | most frequent completion (its digit sum)" for label in labels) + " |"
     lines = [header, "|" + "---|" * (1 + 2 * len(runs))]
     targets = sorted({s["target_digit_sum"] for samples in afters for s in samples})
     for target in targets:
@@ -219,9 +228,9 @@ def completions_by_target(runs: list[Path]) -> str:
         for samples in afters:
             mine = [s for s in samples if s["target_digit_sum"] == target]
             passed = sum(s["n_chars"] == s["target_chars"] and s["digit_sum"] == target for s in mine)
-            top = top_completion(mine).strip().replace("|", "/") if mine else ""
+            top = top_completion(mine).strip() if mine else ""
             sums = {s["digit_sum"] for s in mine if s["completion"].strip() == top}
-            cells += [f"{passed} of {len(mine)}", f"`{top}` ({', '.join(map(str, sorted(sums)))})"
+            cells += [f"{passed} of {len(mine)}", f"`{_cell(top)}` ({', '.join(map(str, sorted(sums)))})"
                       if mine else "-"]
         lines.append(f"| {target} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -241,6 +250,71 @@ def against_preset(runs: list[Path], result: dict) -> str:
         comparison = stats.paired([a[key] for a in afters], [preset[s][key] for s in seeds])
         values = ", ".join(f"seed {s}: {a[key]:.1%} vs {preset[s][key]:.1%}" for s, a in zip(seeds, afters))
         lines.append(f"- {what} ({values}): {comparison.verdict('{:+.1%}')}")
+    return "\n".join(lines) + "\n"
+
+
+def cap_probes(runs: list[Path], recipe: dict) -> str:
+    """A markdown table of single-seed probes against the token-cap hack (lesson 7, 6.6): each
+    run's change to the frozen recipe (``recipe``, a stored config), the precision it computed
+    in, how its last 5 steps look (the share cut off at the cap, the tokens per reply,
+    ``probe_outcome``), and its held-out greedy pass rates and completions, from stored files."""
+    ignore = {"seed", "out_dir"}
+    lines = ["| seed | change to the frozen recipe | precision | cut off at the cap, last 5 steps | "
+             "tokens per reply, last 5 | how it ended | held-out greedy pass (both) | one-digit "
+             "targets | two-digit targets | distinct completions | most frequent completion |",
+             "|" + "---|" * 11]
+    for run in runs:
+        config = json.loads((run / "config.json").read_text())
+        summary = json.loads((run / "summary.json").read_text())
+        after, steps = summary["after"]["greedy"], records(run)
+        change = ", ".join(f"{k} {config[k]}" for k in config
+                           if k not in ignore and config[k] != recipe.get(k)) or "none"
+        top = _cell(top_completion(after["samples"]).strip())
+        lines.append(f"| {config['seed']} | {change} | {summary.get('precision', 'not recorded')} | "
+                     f"{tail_mean(steps, 'truncated_frac'):.0%} | "
+                     f"{tail_mean(steps, 'completion_tokens'):.1f} | {probe_outcome(steps)} | "
+                     f"{after['pass_both']:.1%} | {after['pass_both_one_digit']:.1%} | "
+                     f"{after['pass_both_two_digit']:.1%} | {after['distinct_completions']} of "
+                     f"{len(after['samples'])} | `{top}` |")
+    return "\n".join(lines) + "\n"
+
+
+def sampled_passes(run: Path, width: int = 10) -> list[dict]:
+    """How a run's sampled replies fared in training, ``width`` logged steps at a time: the
+    first and last step of each window, and the replies to one-digit and two-digit targets
+    that passed both constraints, out of those sampled. Each step samples prompts_per_step x
+    group_size replies; with dynamic sampling the batch varies, and the log cannot say it."""
+    config = json.loads((run / "config.json").read_text())
+    if config.get("dynamic_sampling"):
+        raise ValueError(f"{run}: dynamic sampling varies the batch, so its passes cannot be counted from the log")
+    per_step = config["prompts_per_step"] * config["group_size"]
+    steps, windows = records(run), []
+    for start in range(0, len(steps), width):
+        window = steps[start:start + width]
+        two_sampled = sum(r["samples_two_digit"] for r in window)
+        two_passed = sum(r["passes_two_digit"] for r in window)
+        passed = sum(round(r["pass_both"] * per_step) for r in window)
+        windows.append({"first": window[0]["step"], "last": window[-1]["step"],
+                        "one_passed": passed - two_passed, "one_sampled": per_step * len(window) - two_sampled,
+                        "two_passed": two_passed, "two_sampled": two_sampled})
+    return windows
+
+
+def sampled_passes_table(runs: list[Path], labels: list[str], width: int = 10) -> str:
+    """``sampled_passes`` of several runs side by side (a markdown table: one row per window
+    of ``width`` steps, for each run the share of one-digit and of two-digit replies passed)."""
+    if len(labels) != len(runs):
+        raise ValueError(f"{len(labels)} labels for {len(runs)} runs")
+    tables = [sampled_passes(run, width) for run in runs]
+    if len({len(t) for t in tables}) != 1:
+        raise ValueError("the runs logged different numbers of steps")
+    share = lambda passed, sampled: f"{passed / sampled:.0%}" if sampled else "-"  # noqa: E731
+    lines = ["| steps | " + " | ".join(f"{label}: one-digit | {label}: two-digit" for label in labels) + " |",
+             "|" + "---|" * (1 + 2 * len(runs))]
+    for row in zip(*tables):
+        cells = [c for w in row for c in (share(w["one_passed"], w["one_sampled"]),
+                                          share(w["two_passed"], w["two_sampled"]))]
+        lines.append(f"| {row[0]['first']}-{row[0]['last']} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -264,7 +338,7 @@ def seed_table(runs: list[Path], level: float = 0.95) -> str:
         after, steps = summary["after"]["greedy"], records(run)
         for k in keys:
             values[k].append(after[k])
-        top = top_completion(after["samples"]).strip().replace("|", "/").replace("\n", " ")
+        top = _cell(top_completion(after["samples"]).strip())
         lines.append(f"| {config['seed']} | {after['pass_both']:.1%} | {after['pass_both_one_digit']:.1%} | "
                      f"{after['pass_both_two_digit']:.1%} | {after['distinct_completions']} of "
                      f"{len(after['samples'])} | `{top}` | {sum(r['passes_two_digit'] for r in steps)} of "

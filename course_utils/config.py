@@ -103,6 +103,13 @@ class Config:
     overlong_filter: bool = _f(False, "DAPO's overlong filtering: completions cut off at "
                                       "max_new_tokens (no EOS) get no loss, since their reward "
                                       "judges text the policy did not finish")
+    overlong_penalty: float = _f(0.0, "DAPO's soft overlong punishment, added to the reward: "
+                                      "overlong_penalty times rewards.overlong_punishment, which "
+                                      "is 0 up to max_new_tokens - overlong_buffer tokens and "
+                                      "falls linearly to -1 at max_new_tokens; 0: off")
+    overlong_buffer: int = _f(0, "DAPO's L_cache: the last tokens before max_new_tokens over which "
+                                 "the overlong punishment ramps in; 0: only a completion cut off "
+                                 "at max_new_tokens without an EOS is punished")
     kl_coef: float = _f(0.0, "beta, weight of the k3 KL to the reference model; 0 loads no "
                              "reference model")
     kl_schedule: str = _f("constant", "course extension: 'reward_aware' scales kl_coef each step by "
@@ -263,6 +270,12 @@ class Config:
         need(not self.hard_first_ramp or self.hard_first_steps > 0, "hard_first_ramp",
              "ramps the curriculum of hard_first_steps, which is 0: also pass --hard_first_steps N, "
              "or drop --hard_first_ramp")
+        need(self.overlong_buffer < self.max_new_tokens, "overlong_buffer",
+             f"must be below max_new_tokens={self.max_new_tokens}: the punishment ramps in over "
+             "the last overlong_buffer tokens of the cap")
+        need(self.overlong_buffer == 0 or self.overlong_penalty > 0, "overlong_buffer",
+             "shapes the overlong punishment, which is off: also pass --overlong_penalty P "
+             "(DAPO uses 1), or set it to 0")
         need(0 <= self.digit_sum_min <= self.digit_sum_max, "digit_sum_min",
              f"must be between 0 and digit_sum_max={self.digit_sum_max}")
         # after the range check, so a reversed range is named as such
@@ -304,7 +317,8 @@ SIZE_BOUNDS = [("prompt_tokens", 1, 8192), ("target_chars", 1, 10_000),
                ("warmup_steps", 0, 10_000_000), ("eval_every", 0, 10_000_000),
                ("save_every", 1, 10_000_000), ("lora_rank", 0, 4_096),
                ("digit_sum_min", 0, 90_000), ("digit_sum_max", 0, 90_000),
-               ("hard_first_steps", 0, 10_000_000), ("seed", 0, 2**31 - 1)]
+               ("hard_first_steps", 0, 10_000_000), ("overlong_buffer", 0, 8_191),
+               ("seed", 0, 2**31 - 1)]
 SIZE_REASONS = {"group_size": " (a group of one has no relative advantage)",
                 "lora_rank": " (0 turns LoRA off)", "hard_first_steps": " (0 turns it off)"}
 MAX_STEPS = 10_000_000
@@ -316,6 +330,7 @@ FLOAT_BOUNDS = [("temperature", 0.01, 10.0, "from 0.01 to 10 (evaluation has a g
                 ("clip_eps_low", 0.0, 1.0, "in (0, 1)"),
                 ("clip_eps_high", 0.0, 10.0, "> 0 and at most 10"),
                 ("kl_coef", 0.0, 100.0, "from 0 to 100"),
+                ("overlong_penalty", 0.0, 100.0, "from 0 (off) to 100"),
                 ("entropy_coef", 0.0, 100.0, "from 0 to 100"),
                 ("entropy_target", 0.0, 20.0, "from 0 to 20 nats"),
                 ("entropy_weight_max", 0.0, 100.0, "> 0 and at most 100"),

@@ -333,3 +333,26 @@ def get_reward_fn(name: str):
     if name not in REWARDS:
         raise ValueError(f"unknown reward {name!r}; choose one of {', '.join(REWARDS)}")
     return REWARDS[name]
+
+
+def overlong_punishment(lengths: Sequence[int], truncated: Sequence[bool], max_len: int,
+                        buffer: int) -> list[float]:
+    """DAPO's soft overlong punishment (its eq. 13; TRL's ``get_soft_overlong_punishment``), in
+    [-1, 0], to be scaled and *added* to a reward. It judges tokens, not text, so it is not part
+    of the rule above: a pass is still judged by ``check`` alone.
+
+    ``lengths`` counts each completion's tokens, its EOS included. A completion of at most
+    ``max_len - buffer`` tokens gets 0; from there the punishment falls linearly to -1 at
+    ``max_len``. With ``buffer == 0`` (a course extension: TRL's version then punishes nothing)
+    only a completion cut off at ``max_len`` without an EOS (``truncated``) gets -1. Why it
+    matters here: a policy that never stops has its text cut at the cap, and the cut can land
+    on the target length by itself (lesson 7, section 6.5)."""
+    if not 0 <= buffer < max_len:
+        raise ValueError(f"buffer={buffer} must be from 0 to max_len - 1 = {max_len - 1}")
+    if len(lengths) != len(truncated):
+        raise ValueError(f"{len(lengths)} lengths for {len(truncated)} truncated flags")
+    if buffer == 0:
+        return [-1.0 if cut else 0.0 for cut in truncated]
+    start = max_len - buffer
+    return [-1.0 if cut else -min(max(n - start, 0), buffer) / buffer
+            for n, cut in zip(lengths, truncated)]

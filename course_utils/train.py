@@ -34,7 +34,7 @@ import torch
 
 from . import checkpoint, cpu, curriculum, data, interrupt, losses, models, plan, rewards
 from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
-from .rollout import NonFiniteLogits, completion_logprobs, concat_rollouts, rollout
+from .rollout import NonFiniteLogits, Rollout, completion_logprobs, concat_rollouts, rollout
 
 
 class RewardError(ValueError):
@@ -73,6 +73,20 @@ def score(prompts: list[data.Prompt], texts: list[str], reward_name: str) -> dic
         chars_abs_error=torch.tensor([abs(c.n_chars - p.target_chars) for c, p in zip(checks, prompts)],
                                      dtype=torch.float32),
     )
+
+
+def score_rollout(prompts: list[data.Prompt], ro: Rollout, cfg: Config) -> dict[str, torch.Tensor]:
+    """``score`` of a rollout's texts, its truncation flags, and, with ``cfg.overlong_penalty``,
+    DAPO's overlong punishment on its token counts added to 'rewards' (what the advantages
+    see). 'passed' and the other flags stay the rule's alone."""
+    s = score(prompts, ro.texts, cfg.reward)
+    s["truncated"] = ro.truncated.float().cpu()
+    if cfg.overlong_penalty > 0:
+        punish = rewards.overlong_punishment(ro.lengths.tolist(), ro.truncated.tolist(),
+                                             cfg.max_new_tokens, cfg.overlong_buffer)
+        s["overlong"] = cfg.overlong_penalty * torch.tensor(punish, dtype=torch.float32)
+        s["rewards"] = s["rewards"] + s["overlong"]
+    return s
 
 
 def _first_failing(reward_fn, prompts: list[data.Prompt], texts: list[str]) -> str:
@@ -260,7 +274,7 @@ def sample_batch(policy: Policy, prompts: list[data.Prompt],
                      max_new_tokens=cfg.max_new_tokens, eos_ids=policy.eos_ids,
                      temperature=cfg.temperature, generator=policy.generator,
                      fast=cfg.fast_kernels)
-        return ro, score([p for p in batch for _ in range(G)], ro.texts, cfg.reward)
+        return ro, score_rollout([p for p in batch for _ in range(G)], ro, cfg)
 
     ro, scores = sample(prompts)
     rewards, first_pass = scores["rewards"], float(scores["passed"].mean())
@@ -329,8 +343,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
         return _skipped_sampling(policy, sampling_error, timer, t0)
     ro, local, groups_sampled, rounds, first_pass = sampled
     with timer("scoring"):
-        s = score([p for p in local for _ in range(G)], ro.texts, cfg.reward)
-        s["truncated"] = ro.truncated.float().cpu()
+        s = score_rollout([p for p in local for _ in range(G)], ro, cfg)
         if W > 1:  # everyone's rewards and flags, in process order (= the global batch order)
             s = {k: acc.gather(v.to(acc.device)).cpu() for k, v in s.items()}
         advantages, zero_std = losses.group_advantages(s["rewards"], G, cfg.advantage_center,
@@ -455,6 +468,8 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
         gen_time=timer.seconds["generation"], train_time=t_end - t0 - timer.seconds["generation"],
         step_time=t_end - t0, tokens_per_s=total_tokens / (t_end - t0),
         **{f"time_{phase}": sec for phase, sec in timer.seconds.items()}, **stats_sum,
+        # the punishment's share of reward_mean, logged only where it is on (older logs stay as they were)
+        **({"overlong_mean": float(s["overlong"].mean())} if "overlong" in s else {}),
     )
 
 
@@ -852,6 +867,10 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     # to the first; an invocation that crashed wrote no time, so its lost work is not counted
     summary["seconds"] = summary.get("seconds", 0.0) + time.perf_counter() - started
     summary["resumed"] = bool(state)
+    # what 'auto' resolved to, and the CPU kernels torch picked: runs on two machines compare
+    # only when these agree (lesson 7, section 6.5)
+    summary["precision"] = effective_precision(cfg)
+    summary["cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     checkpoint.write_json(summary_path, summary)
     print(_write_report(run_dir, summary, cfg))
     return summary

@@ -84,6 +84,10 @@ MAPPING: tuple[Row, ...] = (
              "it by the ratio (lesson 6, section 6)"),
     Row(("kl_schedule",), note="'reward_aware' is a course extension (lesson 8): no TRL flag"),
     Row(("overlong_filter",), {"mask_truncated_completions": False}),
+    Row(("overlong_penalty", "overlong_buffer"), {"reward_weights": None},
+        note="a second reward function, trl.rewards.get_soft_overlong_punishment(max_new_tokens, "
+             "overlong_buffer), weighted by reward_weights=[1, overlong_penalty]; "
+             "overlong_buffer=0 (only text cut off without EOS) has no TRL equivalent"),
     Row(("dynamic_sampling", "max_sampling_rounds"),
         note="no TRL flag: TRL trains on every group; an all-equal group has advantage 0"),
     Row(("entropy_bonus", "entropy_coef", "entropy_target", "entropy_weight_max"),
@@ -142,6 +146,12 @@ def no_equivalent(cfg: Config) -> list[str]:
         lines.append("entropy_bonus='inverse_variance' (TRL has constant and adaptive)")
     if cfg.target_sampling != "uniform":
         lines.append(f"target_sampling={cfg.target_sampling!r} (TRL shuffles uniformly)")
+    if cfg.overlong_penalty and not cfg.overlong_buffer:
+        lines.append("overlong_penalty with overlong_buffer=0 (TRL's soft punishment with no "
+                     "cache punishes nothing)")
+    elif cfg.overlong_penalty:
+        lines.append("overlong_penalty (add trl.rewards.get_soft_overlong_punishment to the "
+                     "reward functions, weighted by reward_weights)")
     if cfg.hard_first_steps:
         ramp = ", ramped" if cfg.hard_first_ramp else ""
         lines.append(f"hard_first_steps={cfg.hard_first_steps}{ramp} (TRL has no curriculum)")

@@ -174,6 +174,19 @@ def fresh_vs_preset_markdown() -> str:
     return ablation.against_preset(figures.fresh_runs(), figures.fresh_preset())
 
 
+def cap_paired_markdown() -> str:
+    """Lesson 7, 6.6: the recipe with the overlong punishment minus its control, paired by seed."""
+    from course_utils import stats
+    afters = {seed: [json.loads((run / "summary.json").read_text())["after"]["greedy"]
+                     for run in figures.cap_pair_runs(seed)] for seed in figures.CAP_PAIRS}
+    lines = []
+    for key, what in (("pass_both", "both constraints"), ("pass_both_two_digit", "two-digit targets")):
+        values = ", ".join(f"seed {s}: {p[key]:.1%} vs {c[key]:.1%}" for s, (c, p) in afters.items())
+        comparison = stats.paired([p[key] for c, p in afters.values()], [c[key] for c, p in afters.values()])
+        lines.append(f"- {what} ({values}): {comparison.verdict('{:+.1%}')}")
+    return "\n".join(lines) + "\n"
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -252,6 +265,18 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "FRESH_SEEDS", fresh_markdown())
         text = fill_markdown(text, "FRESH_BY_TARGET", ablation.completions_by_target(figures.fresh_runs()))
         text = fill_markdown(text, "FRESH_VS_PRESET", fresh_vs_preset_markdown())
+    if "{{CAP_PROBES}}" in text:
+        from course_utils import ablation
+        runs = figures.cap_probe_runs()
+        probe, fresh = runs[:3], figures.cap_pair_runs(figures.CAP_FRESH_SEED)
+        pairs = [run for seed in figures.CAP_PAIRS for run in figures.cap_pair_runs(seed)]
+        text = fill_markdown(text, "CAP_PROBES", ablation.cap_probes(runs, figures.frozen_recipe()))
+        text = fill_markdown(text, "CAP_BY_TARGET",
+                             ablation.completions_by_target(probe, figures.cap_labels(probe)))
+        text = fill_markdown(text, "CAP_FRESH_BY_TARGET",
+                             ablation.completions_by_target(fresh, figures.cap_labels(fresh)))
+        text = fill_markdown(text, "CAP_TRAINING", ablation.sampled_passes_table(pairs, figures.cap_labels(pairs)))
+        text = fill_markdown(text, "CAP_PAIRED", cap_paired_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))

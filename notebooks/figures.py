@@ -355,6 +355,175 @@ def fresh_runs() -> list[Path]:
                   key=lambda p: int(p.name.removeprefix("counted-kl-seed")))
 
 
+def frozen_recipe() -> dict:
+    """The frozen counted-KL recipe's settings: a fresh-seed run's stored config (every one of
+    them has the same but the seed and out_dir, as tests/test_figures.py checks), with the
+    defaults of fields added since, which were off when they did not exist (overlong_penalty)."""
+    from course_utils.config import Config
+
+    return {**Config().to_dict(), **_json(f"fresh-seeds/{fresh_runs()[0].name}/config.json")}
+
+
+# lesson 7, 6.6: per seed, the control (the frozen recipe on this machine) and the probe (the
+# recipe with DAPO's overlong punishment), in notebooks/results/cap-probes. Seed 13 filled the cap
+# in section 6.5 (so it is no longer fresh); seed 15 was never run before the probe was fixed.
+CAP_PAIRS = {13: ("recipe-fp32-seed13", "overlong-punishment-seed13"),
+             15: ("recipe-fp32-seed15", "overlong-punishment-seed15")}
+CAP_PROBE_SEED, CAP_FRESH_SEED = 13, 15
+CAP_CONTROL, CAP_PUNISHED = CAP_PAIRS[CAP_PROBE_SEED]
+# a window of training steps "passes most one-digit targets" when its sampled replies pass at
+# least this share of them (ablation.sampled_passes, 10 steps a window)
+CAP_MOST = 0.5
+
+
+def cap_probe_runs() -> list[Path]:
+    """Lesson 7, 6.6: the frozen recipe's stored fresh-seed run on the probe's seed (a seed that
+    filled the cap, so no longer fresh), then for each seed of CAP_PAIRS the control and the
+    recipe with DAPO's overlong punishment."""
+    stored = [run for run in fresh_runs()
+              if _json(f"fresh-seeds/{run.name}/config.json")["seed"] == CAP_PROBE_SEED]
+    return stored + [RESULTS / "cap-probes" / name for pair in CAP_PAIRS.values() for name in pair]
+
+
+def cap_pair_runs(seed: int) -> list[Path]:
+    """One seed's control, then its run with the punishment."""
+    return [RESULTS / "cap-probes" / name for name in CAP_PAIRS[seed]]
+
+
+def cap_labels(runs: list[Path]) -> list[str]:
+    """Column names for cap-probe runs: seed and arm."""
+    def label(run: Path) -> str:
+        seed = _json(f"{run.parent.name}/{run.name}/config.json")["seed"]
+        arm = ("stored run" if run.parent.name == "fresh-seeds" else
+               "control" if run.name == CAP_PAIRS[seed][0] else "punished")
+        return f"seed {seed}, {arm}"
+    return [label(run) for run in runs]
+
+
+def _check_cap_pairs() -> None:
+    """What 6.6 says of its runs: each probe is the frozen recipe plus the overlong punishment,
+    each control the frozen recipe, on the probe's seed, machine and precision."""
+    recipe = frozen_recipe()
+    for seed, (control, punished) in CAP_PAIRS.items():
+        config, control_config = (_json(f"cap-probes/{name}/config.json") for name in (punished, control))
+        changed = {k for k in config if config[k] != recipe[k]} - {"seed", "out_dir"}
+        if changed != {"overlong_penalty", "overlong_buffer"}:
+            raise ValueError(f"lesson 7, 6.6 says the probe changes only the overlong punishment; "
+                             f"{punished} changes {changed}")
+        if {k for k in control_config if control_config[k] != recipe[k]} - {"seed", "out_dir"} or \
+                control_config["seed"] != config["seed"] or config["seed"] != seed:
+            raise ValueError(f"lesson 7, 6.6's control must be the frozen recipe on the probe's seed: {control}")
+        machines = {(_json(f"cap-probes/{name}/summary.json").get("precision"),
+                     _json(f"cap-probes/{name}/summary.json").get("cpu_capability")) for name in (control, punished)}
+        if len(machines) != 1:
+            raise ValueError(f"the probe and its control ran in different precisions or CPUs: {machines}")
+
+
+def _one_digit_stretch(run: Path) -> tuple[int, int, float, float, float]:
+    """The stretch of training in which a run's sampled replies passed most one-digit targets
+    (every 10-step window from the first such window to the last at CAP_MOST or more), its
+    share of one-digit passes, and the one-digit and two-digit shares after it."""
+    from course_utils import ablation
+
+    windows = ablation.sampled_passes(run)
+    most = [i for i, w in enumerate(windows) if w["one_passed"] >= CAP_MOST * w["one_sampled"]]
+    if not most or most != list(range(most[0], most[-1] + 1)) or most[-1] == len(windows) - 1:
+        raise ValueError(f"lesson 7, 6.6 describes one stretch of one-digit passes that ended before "
+                         f"the run did; {run.name} has windows {most}")
+    share = lambda ws, k: sum(w[f"{k}_passed"] for w in ws) / sum(w[f"{k}_sampled"] for w in ws)  # noqa: E731
+    inside, after = windows[most[0]:most[-1] + 1], windows[most[-1] + 1:]
+    return inside[0]["first"], inside[-1]["last"], share(inside, "one"), share(after, "one"), share(after, "two")
+
+
+def cap_figures() -> dict[str, str]:
+    """Lesson 7, 6.6, and the README: the overlong-punishment probes and their controls."""
+    import inspect
+
+    from course_utils import ablation, rewards, stats
+
+    _check_cap_pairs()
+    stored = cap_probe_runs()[0]
+    after = lambda run: _json(f"{run.parent.name}/{run.name}/summary.json")["after"]["greedy"]  # noqa: E731
+    config = _json(f"cap-probes/{CAP_PUNISHED}/config.json")
+    punished = RESULTS / "cap-probes" / CAP_PUNISHED
+    samples = after(punished)["samples"]
+    # what 6.6 says the probe writes: one reply for every two-digit target, and one-digit
+    # replies that all miss the length by the same few characters
+    two = {(x["completion"].strip(), x["digit_sum"]) for x in samples if x["target_digit_sum"] >= 10}
+    one_short = {x["target_chars"] - x["n_chars"] for x in samples if x["target_digit_sum"] < 10}
+    if len(two) != 1 or len(one_short) != 1:
+        raise ValueError(f"lesson 7, 6.6 describes one two-digit reply and one length miss; "
+                         f"found {two} and {one_short}")
+    steps = ablation.records(punished)
+    shortest = min(steps, key=lambda r: r["completion_tokens"])
+    control_steps = ablation.records(RESULTS / "cap-probes" / CAP_CONTROL)
+    # the step by which the punishment had driven replies off the cap: the first step at which
+    # the probe's replies were shorter than half its first step's
+    off_cap = next(r for r in steps if r["completion_tokens"] < steps[0]["completion_tokens"] / 2)
+    start, end, one_inside, one_after, two_after = _one_digit_stretch(punished)
+    # what a reply that is one bare digit, the target's own, earns under the counted credit
+    bare = rewards.counted_score(rewards.check("5", 32, 5), 32, 5)
+    fresh = {arm: after(run) for arm, run in zip(("control", "punished"), cap_pair_runs(CAP_FRESH_SEED))}
+    fresh_samples = fresh["punished"]["samples"]
+    fresh_two = {(x["completion"].strip(), x["digit_sum"]) for x in fresh_samples if x["target_digit_sum"] >= 10}
+    if len(fresh_two) != 1:
+        raise ValueError(f"lesson 7, 6.6 describes one two-digit reply on seed {CAP_FRESH_SEED}; found {fresh_two}")
+    # what 6.6 says seed 15's probe writes for one-digit targets: the target digit and a 0 in
+    # one 32-character frame
+    fresh_one = [x for x in fresh_samples if x["target_digit_sum"] < 10]
+    frames = {re.sub(r"[0-9]", "N", x["completion"].strip()) for x in fresh_samples}
+    if len(frames) != 1 or any(re.findall(r"[0-9]", x["completion"]) != [str(x["target_digit_sum"]), "0"]
+                               for x in fresh_one):
+        raise ValueError(f"lesson 7, 6.6 says seed {CAP_FRESH_SEED}'s probe writes the target digit and a 0 "
+                         f"in one frame; found frames {frames}")
+    example = min(fresh_one, key=lambda x: x["target_digit_sum"])
+    pairs = [[after(run) for run in cap_pair_runs(seed)] for seed in CAP_PAIRS]
+    both = stats.paired([p["pass_both"] for _, p in pairs], [c["pass_both"] for c, _ in pairs])
+    whole_cut = lambda run: statistics.mean(r["truncated_frac"] for r in ablation.records(run))  # noqa: E731
+    runs = {"stored": stored, "control": RESULTS / "cap-probes" / CAP_CONTROL, "punished": punished,
+            "fresh_control": cap_pair_runs(CAP_FRESH_SEED)[0], "fresh_punished": cap_pair_runs(CAP_FRESH_SEED)[1]}
+    return {"cap.seed": f"{CAP_PROBE_SEED}",
+            "cap.fresh_seed": f"{CAP_FRESH_SEED}",
+            "cap.pairs": _word(len(CAP_PAIRS)),
+            "cap.bare_digit": f"{bare:.2f}",
+            "cap.two_digit_reply": next(iter(two))[0],
+            "cap.two_digit_sum": f"{next(iter(two))[1]}",
+            "cap.one_digit_short": _word(next(iter(one_short))),
+            "cap.first_tokens": f"{steps[0]['completion_tokens']:.1f}",
+            "cap.first_cut": f"{steps[0]['truncated_frac']:.0%}",
+            "cap.off_cap_step": f"{off_cap['step']}",
+            "cap.off_cap_tokens": f"{off_cap['completion_tokens']:.1f}",
+            "cap.control_off_cap_tokens": f"{control_steps[off_cap['step'] - 1]['completion_tokens']:.1f}",
+            "cap.shortest_tokens": f"{shortest['completion_tokens']:.1f}",
+            "cap.shortest_step": f"{shortest['step']}",
+            "cap.stretch_start": f"{start}",
+            "cap.stretch_end": f"{end}",
+            "cap.stretch_one": f"{one_inside:.0%}",
+            "cap.after_one": f"{one_after:.0%}",
+            "cap.after_two": f"{two_after:.0%}",
+            "cap.most": f"{CAP_MOST:.0%}",
+            "cap.penalty": f"{config['overlong_penalty']:g}",
+            "cap.buffer": f"{config['overlong_buffer']}",
+            "cap.max_new_tokens": f"{config['max_new_tokens']}",
+            "cap.ramp_start": f"{config['max_new_tokens'] - config['overlong_buffer']}",
+            "cap.precision": _json(f"cap-probes/{CAP_PUNISHED}/summary.json")["precision"],
+            "cap.fresh_two_digit_reply": next(iter(fresh_two))[0],
+            "cap.fresh_two_digit_sum": f"{next(iter(fresh_two))[1]}",
+            "cap.fresh_example": example["completion"].strip(),
+            "cap.fresh_example_target": f"{example['target_digit_sum']}",
+            "cap.paired_mean": f"{both.mean:+.1%}",
+            "cap.paired_p": f"{both.p_value:.3g}",
+            "cap.paired_floor": f"{both.p_floor:.3g}",
+            "cap.paired_df": _word(both.n - 1),
+            "cap.window": f"{inspect.signature(ablation.sampled_passes).parameters['width'].default}",
+            **{f"cap.{name}_{key}": f"{after(run)[field]:.1%}" for name, run in runs.items()
+               for key, field in (("pass", "pass_both"), ("one", "pass_both_one_digit"),
+                                  ("two", "pass_both_two_digit"))},
+            **{f"cap.{name}_cut": f"{ablation.tail_mean(ablation.records(run), 'truncated_frac'):.0%}"
+               for name, run in runs.items()},
+            **{f"cap.{name}_whole_cut": f"{whole_cut(run):.0%}" for name, run in runs.items()}}
+
+
 def fresh_preset() -> dict:
     """The cpu preset on the same fresh seeds, as ``python -m course_utils.ablation --seeds 10 11
     12 13 14 --arms "full recipe (the cpu preset)" --out notebooks/results/fresh-seeds/preset``
@@ -417,7 +586,7 @@ def data_figures() -> dict[str, str]:
 
 def figures() -> dict[str, str]:
     return {**plan_figures(), **gpu_check_figures(), **track_figures(), **cpu_run_figures(), **data_figures(),
-            **fresh_figures()}
+            **fresh_figures(), **cap_figures()}
 
 
 def fill(text: str, source: str) -> str:

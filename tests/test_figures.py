@@ -362,3 +362,50 @@ def test_the_order_chance_matches_a_brute_force_permutation_test():
                  for s in splits)
     assert on_top == 1 and figures._order_chance(tuning, fresh) == f"1 in {len(splits)}"
     assert len(splits) == math.comb(8, 3)
+
+
+def test_the_fresh_seed_runs_share_one_config_but_their_seed_and_out_dir():
+    """figures.frozen_recipe reads one fresh-seed run's config as the recipe's: that is only the
+    recipe if every fresh-seed run has the same settings but its seed and out_dir."""
+    configs = [figures._json(f"fresh-seeds/{run.name}/config.json") for run in figures.fresh_runs()]
+    settings = [{k: v for k, v in c.items() if k not in ("seed", "out_dir")} for c in configs]
+    assert len(configs) >= 2 and all(s == settings[0] for s in settings)
+    assert len({c["seed"] for c in configs}) == len(configs)
+
+
+def _cap_json_with(monkeypatch, run: str, **changes):
+    real = figures._json
+    monkeypatch.setattr(figures, "_json", lambda rel: {**real(rel), **changes}
+                        if rel == f"cap-probes/{run}/config.json" else real(rel))
+
+
+@pytest.mark.parametrize("run, changes, mistake", [
+    (figures.CAP_PUNISHED, {"lr": 1.0}, "changes only the overlong punishment"),
+    (figures.CAP_PUNISHED, {"overlong_buffer": 0, "overlong_penalty": 0.0}, "changes only the overlong"),
+    (figures.CAP_CONTROL, {"seed": 14}, "control must be the frozen recipe on the probe's seed"),
+    (figures.CAP_CONTROL, {"overlong_penalty": 1.0}, "control must be the frozen recipe"),
+    (figures.CAP_CONTROL, {"kl_coef": 0.0}, "control must be the frozen recipe"),
+])
+def test_the_cap_probe_figures_refuse_a_probe_or_control_that_is_not_what_6_6_says(monkeypatch, run,
+                                                                                   changes, mistake):
+    figures.cap_figures()  # the stored files pass
+    _cap_json_with(monkeypatch, run, **changes)
+    with pytest.raises(ValueError, match=mistake):
+        figures.cap_figures()
+
+
+@pytest.mark.parametrize("changes", [{"precision": "bf16"}, {"cpu_capability": "AVX512"}])
+def test_the_cap_probe_figures_refuse_a_control_in_another_precision_or_cpu(monkeypatch, changes):
+    real = figures._json
+    monkeypatch.setattr(figures, "_json", lambda rel: {**real(rel), **changes}
+                        if rel == f"cap-probes/{figures.CAP_CONTROL}/summary.json" else real(rel))
+    with pytest.raises(ValueError, match="different precisions or CPUs"):
+        figures.cap_figures()
+
+
+def test_every_cap_probe_pair_is_checked(monkeypatch):
+    """The fresh seed's pair too, not only the probe's."""
+    control, punished = figures.CAP_PAIRS[figures.CAP_FRESH_SEED]
+    _cap_json_with(monkeypatch, punished, lr=1.0)
+    with pytest.raises(ValueError, match=f"{punished} changes"):
+        figures.cap_figures()

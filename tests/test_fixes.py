@@ -626,3 +626,62 @@ def test_the_cpu_presets_token_cap_has_room_for_the_stored_runs_replies():
     lengths = {len(tokenizer(r, add_special_tokens=False)["input_ids"]) for r in replies}
     assert replies and lengths == {9}
     assert max(lengths) + 1 <= load_config("cpu").max_new_tokens
+
+
+# --- DAPO's overlong punishment ------------------------------------------------------------------
+
+@pytest.mark.parametrize("lengths, truncated, max_len, buffer, expected", [
+    # by hand: 0 up to max_len - buffer = 16 tokens, then -1/8 per token, -1 at the cap
+    ([10, 16, 17, 20, 24, 24], [False] * 5 + [True], 24, 8, [0, 0, -0.125, -0.5, -1, -1]),
+    ([3, 5, 6], [False, False, False], 6, 1, [0, 0, -1]),       # an EOS as the 6th token too (DAPO)
+    # buffer 0 (the course's hard variant): only text cut off without an EOS
+    ([24, 24, 9], [True, False, False], 24, 0, [-1, 0, 0]),
+])
+def test_overlong_punishment_by_hand(lengths, truncated, max_len, buffer, expected):
+    got = train.rewards.overlong_punishment(lengths, truncated, max_len, buffer)
+    assert got == pytest.approx(expected)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_overlong_punishment_matches_trl_soft_punishment(seed):
+    """A second implementation: TRL 1.16's get_soft_overlong_punishment, on seeded lengths and
+    caches. TRL's completion_ids are the sampled tokens, EOS included; a cut-off one has max_len."""
+    trl_rewards = pytest.importorskip("trl.rewards")
+    g = torch.Generator().manual_seed(seed)
+    max_len = int(torch.randint(8, 64, (1,), generator=g))
+    buffer = int(torch.randint(1, max_len, (1,), generator=g))
+    lengths = torch.randint(1, max_len + 1, (40,), generator=g).tolist()
+    truncated = [n == max_len and bool(torch.rand(1, generator=g) < 0.5) for n in lengths]
+    ours = train.rewards.overlong_punishment(lengths, truncated, max_len, buffer)
+    theirs = trl_rewards.get_soft_overlong_punishment(max_len, buffer)([[0] * n for n in lengths])
+    assert ours == pytest.approx(theirs)
+
+
+def test_overlong_punishment_refuses_a_buffer_that_covers_the_cap():
+    with pytest.raises(ValueError, match="from 0 to max_len - 1"):
+        train.rewards.overlong_punishment([3], [False], 4, 4)
+    with pytest.raises(ValueError, match="lengths for"):
+        train.rewards.overlong_punishment([3, 4], [False], 8, 2)
+
+
+def test_overlong_penalty_is_added_to_the_reward_and_leaves_the_pass_flags(monkeypatch):
+    """max_new_tokens=1 cuts every completion off: each reward drops by exactly overlong_penalty
+    (what the advantages are computed from), and the rule's flags stay as they were."""
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped",
+                        lambda prompts, completions, **kw: [float(i % 3) for i in range(len(completions))])
+    seen = {}
+    for penalty in (0.0, 0.7):
+        policy = train.setup(load_config("smoke", overlong_penalty=penalty, max_new_tokens=1))
+        policy.optimizer.step = lambda *a, **k: None
+        prompts = _prompts([3, 4])
+        real_score = train.score_rollout
+        monkeypatch.setattr(train, "score_rollout",
+                            lambda *a: seen.setdefault(penalty, real_score(*a)))
+        metrics = train.grpo_step(policy, prompts)
+        monkeypatch.setattr(train, "score_rollout", real_score)
+        assert metrics["truncated_frac"] == 1.0
+        assert ("overlong_mean" in metrics) == (penalty > 0)
+    off, on = seen[0.0], seen[0.7]
+    assert "overlong" not in off
+    assert torch.allclose(on["rewards"], off["rewards"] - 0.7)
+    assert torch.equal(on["passed"], off["passed"]) and torch.equal(on["length_ok"], off["length_ok"])

@@ -869,54 +869,16 @@ for key, value in mine.items():
 #
 # | target digit sum | seed 10: passed | most frequent completion (its digit sum) | seed 11: passed | most frequent completion (its digit sum) | seed 12: passed | most frequent completion (its digit sum) | seed 13: passed | most frequent completion (its digit sum) | seed 14: passed | most frequent completion (its digit sum) |
 # |---|---|---|---|---|---|---|---|---|---|---|
-# | 3 | 0 of 4 | `The 3: 1
-#
-# BILLY: 1.
-#
-# BILLY: 2.` (7) | 3 of 6 | `The 100 * 0 * 0 * 10 = 100 * 0 *` (3) | 1 of 5 | `The old mill 3ft by 2, no.` (5) | 0 of 5 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 6 of 6 | `Repetitions only.  3 characters.` (3) |
-# | 4 | 0 of 6 | `BONUS: 11:11
-#
-# Lad: 11:11
-#
-# L` (8) | 1 of 6 | `The 100 * 0 * 0 * 0 * 100 = 0 *` (2) | 0 of 6 | `The most important 4re is.` (4) | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  4 characters.` (4) |
-# | 5 | 0 of 7 | `BILLY: 11:11
-#
-# BILLY: 11:11` (8) | 0 of 10 | `The 10 * 0 * 0 * 0 * 10 * 10 * 1` (4) | 0 of 6 | `The most important 5re is.` (5) | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 6 of 6 | `Repetitions only.  5 characters.` (5) |
-# | 6 | 0 of 8 | `BILLY: 11:11
-#
-# BILLY: 11:11` (8) | 0 of 4 | `The 0000 * 0 * 0 * 100 = 0 * 0 *` (1) | 0 of 7 | `The most important 6n is.` (6) | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 3 of 3 | `Repetitions only,  6 characters.` (6) |
-# | 7 | 0 of 10 | `The 32 
-# A: 
-# A: 
-# B: 
-# C: 
-# D:` (5) | 0 of 6 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The most important 7re no. no.` (7) | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 8 of 8 | `Repetitions only.  7 characters.` (7) |
-# | 8 | 0 of 9 | `BILLY: 11:11
-#
-# BILLY: 11:11` (8) | 0 of 10 | `10 * 0 * 0 * 1 = 0 * 1 = 10 * 1` (5) | 1 of 3 | `The most important 8girls  said.` (8) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  8 characters.` (8) |
-# | 9 | 0 of 4 | `The 32 
-# A: 
-# A: 
-# B: 
-# C: 
-# D:` (5) | 0 of 7 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The old lady with 9re no more.` (9) | 0 of 6 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 9 of 9 | `Repetitions only.  9 characters.` (9) |
-# | 10 | 0 of 4 | `The 32
-#
-# The 32
-#
-# BILLY: 1111
-#
-# B` (14) | 0 of 6 | `The 10 * 0 + 0 * 10 = 10 * 0 + 1` (4) | 0 of 9 | `The most important 19re, no.` (10) | 0 of 9 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `Repetitions only.  32 characters.` (5) |
-# | 11 | 0 of 4 | `BILLY: 11 
-# BILLY: 11 
-# BILLY: 1` (5) | 0 of 4 | `The 10 * 0 * 0 * 0 * 1 * 1 * 1 *` (4) | 0 of 10 | `The most important 19re, no.` (10) | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `Repetitions only.  32 characters.` (5) |
-# | 12 | 0 of 8 | `The 32
-#
-# Lad: 32
-#
-# Lad: 12
-#
-# Lad` (13) | 0 of 5 | `The 12 * 0 * 0 * 0 * 12 * 0 * 1 *` (7) | 0 of 8 | `The most important 19g is.` (10) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 11 | `Repetitions only.  32 characters.` (5) |
+# | 3 | 0 of 4 | `The 3: 1  BILLY: 1.  BILLY: 2.` (7) | 3 of 6 | `The 100 * 0 * 0 * 10 = 100 * 0 *` (3) | 1 of 5 | `The old mill 3ft by 2, no.` (5) | 0 of 5 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 6 of 6 | `Repetitions only.  3 characters.` (3) |
+# | 4 | 0 of 6 | `BONUS: 11:11  Lad: 11:11  L` (8) | 1 of 6 | `The 100 * 0 * 0 * 0 * 100 = 0 *` (2) | 0 of 6 | `The most important 4re is.` (4) | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  4 characters.` (4) |
+# | 5 | 0 of 7 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 10 | `The 10 * 0 * 0 * 0 * 10 * 10 * 1` (4) | 0 of 6 | `The most important 5re is.` (5) | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 6 of 6 | `Repetitions only.  5 characters.` (5) |
+# | 6 | 0 of 8 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 4 | `The 0000 * 0 * 0 * 100 = 0 * 0 *` (1) | 0 of 7 | `The most important 6n is.` (6) | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 3 of 3 | `Repetitions only,  6 characters.` (6) |
+# | 7 | 0 of 10 | `The 32  A:  A:  B:  C:  D:` (5) | 0 of 6 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The most important 7re no. no.` (7) | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 8 of 8 | `Repetitions only.  7 characters.` (7) |
+# | 8 | 0 of 9 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 10 | `10 * 0 * 0 * 1 = 0 * 1 = 10 * 1` (5) | 1 of 3 | `The most important 8girls  said.` (8) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  8 characters.` (8) |
+# | 9 | 0 of 4 | `The 32  A:  A:  B:  C:  D:` (5) | 0 of 7 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The old lady with 9re no more.` (9) | 0 of 6 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 9 of 9 | `Repetitions only.  9 characters.` (9) |
+# | 10 | 0 of 4 | `The 32  The 32  BILLY: 1111  B` (14) | 0 of 6 | `The 10 * 0 + 0 * 10 = 10 * 0 + 1` (4) | 0 of 9 | `The most important 19re, no.` (10) | 0 of 9 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `Repetitions only.  32 characters.` (5) |
+# | 11 | 0 of 4 | `BILLY: 11  BILLY: 11  BILLY: 1` (5) | 0 of 4 | `The 10 * 0 * 0 * 0 * 1 * 1 * 1 *` (4) | 0 of 10 | `The most important 19re, no.` (10) | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `Repetitions only.  32 characters.` (5) |
+# | 12 | 0 of 8 | `The 32  Lad: 32  Lad: 12  Lad` (13) | 0 of 5 | `The 12 * 0 * 0 * 0 * 12 * 0 * 1 *` (7) | 0 of 8 | `The most important 19g is.` (10) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 11 | `Repetitions only.  32 characters.` (5) |
 #
 # The `cpu` preset, run on the same fresh seeds and scored on the same held-out prompts, is
 # the comparison that says whether the frozen recipe is worth its extra steps. Paired by seed
@@ -942,7 +904,8 @@ for key, value in mine.items():
 # token cap) is part of what the policy optimizes: on some seeds GRPO finds it before it finds
 # the end-of-sequence token. The `cpu` preset keeps its recipe. The leads these runs point to: a
 # cap the hack cannot use (a completion cut off at `max_new_tokens` scored as a failure, or
-# DAPO's overlong filtering, which section 6.2's run with it shows is not enough on its own), exploration that
+# DAPO's overlong filtering, which section 6.2's run with it shows is not enough on its own;
+# section 6.6 probes DAPO's other answer, the overlong punishment), exploration that
 # outlasts the first number found, larger groups for the unsolved targets, and a warm start as
 # a labelled comparison (what supervision alone reaches, and what GRPO adds).
 #
@@ -957,6 +920,166 @@ if SMOKE or RUN_EXPERIMENTS:
     display(Image(filename="runs/ablation-results/curves.png"))
 else:
     print("Showing the stored results above; set RUN_EXPERIMENTS = True to train every arm again.")
+
+# %% [markdown]
+# ### 6.6 Taking the cap away: DAPO's overlong punishment (a probe, then a fresh seed)
+#
+# Section 6.5 left a hack standing: a policy that never ends its reply and lets the cap of
+# `max_new_tokens` cut it near the target length. DAPO (section 3.4 of its paper) answers this on
+# the reward side: a reply is charged for its length in tokens as it nears the cap.
+# `rewards.overlong_punishment` is that soft punishment. With a cap of $L$ tokens and a buffer of
+# $B$, a reply of $\ell$ tokens is charged
+#
+# $$R_{\text{length}}(\ell) = \begin{cases} 0 & \ell \le L - B \\ (L - B - \ell)/B & L - B < \ell \le L
+# \end{cases}$$
+#
+# times a weight, and the charge is added to its reward. A reply cut off at the cap has
+# $\ell = L$ and is charged the full weight. (DAPO's equation has a third case, $\ell > L$,
+# which a hard cap never produces.) The weight, `overlong_penalty`, switches it on; it is 0 by
+# default, so every run above is unchanged. `overlong_buffer` is $B$. With $B = 0$, an extension
+# of this course, only cut-off replies are charged, and a buffer without a weight is refused.
+# `tests/test_fixes.py` checks the function against hand-computed values and against TRL's own
+# `get_soft_overlong_punishment` on seeded random lengths. The punishment changes the reward,
+# never the verdict: a pass is still judged by `rewards.check` alone, and the held-out columns
+# below come from that same checker.
+#
+# The design is a probe and then a fresh seed, each a pair of runs. First a probe on seed 13, one of
+# section 6.5's fresh seeds that filled the cap. Having been looked at, it is no longer fresh, and
+# it is where the settings were fixed: weight 1 and buffer 5, so
+# no charge up to 19 tokens and the full charge at the cap of
+# 24. Then the same settings, unchanged, on seed 15,
+# which no run of this course had used. Each run with the punishment has a control: the frozen
+# recipe, unchanged, on the same seed, the same machine and the same precision
+# (fp32). The build checks that each probe differs from the recipe in the two
+# fields only, and that probe and control record the same precision and CPU in `summary.json`. The
+# stored run on seed 13 cannot be the comparison: section 6.5 says it ran in bf16
+# on another CPU (its summary predates the precision field). Held out, greedy:
+#
+# | seed | change to the frozen recipe | precision | cut off at the cap, last 5 steps | tokens per reply, last 5 | how it ended | held-out greedy pass (both) | one-digit targets | two-digit targets | distinct completions | most frequent completion |
+# |---|---|---|---|---|---|---|---|---|---|---|
+# | 13 | none | not recorded | 100% | 24.0 | filling the token cap | 4.7% | 7.1% | 0.0% | 2 of 64 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` |
+# | 13 | none | fp32 | 1% | 10.1 | still exploring | 0.0% | 0.0% | 0.0% | 46 of 64 | `The code adds 19 to every.  The code adds 19 to every.` |
+# | 13 | overlong_penalty 1.0, overlong_buffer 5 | fp32 | 0% | 8.8 | still exploring | 14.1% | 0.0% | 40.9% | 8 of 64 | `19 characters! That's ingenious!` |
+# | 15 | none | fp32 | 9% | 11.8 | still exploring | 7.8% | 11.6% | 0.0% | 11 of 64 | `This text was 9 words long.` |
+# | 15 | overlong_penalty 1.0, overlong_buffer 5 | fp32 | 2% | 8.7 | still exploring | 79.7% | 100.0% | 38.1% | 8 of 64 | `74 characters replying in itself` |
+#
+# **Seed 13, the probe.** Read it in this order.
+#
+# - **The control did not fill the cap either.** On this machine this run of the recipe took
+#   another path: 1% of its replies were cut off over the last logged steps
+#   (5% over the whole run), against the stored run's
+#   100%. So this probe cannot show that the punishment prevents the hack.
+#   Section 6.3 found that changing the kernels changes a sampled run's path; here the CPU and
+#   the precision changed together, and the path changed with them.
+# - **With the punishment, 0% are cut off over the last logged steps**
+#   (2% over the whole run). At step 1, 75% of the
+#   replies ran to the cap, and a cut reply now scores its credit minus the full weight, at or below
+#   zero. By step 3 the mean reply was 5.7 tokens
+#   (the control's, that step: 11.9). Below
+#   19 tokens the punishment charges nothing, and the credit took replies
+#   shorter still, to 2.9 tokens at step 13. The
+#   log keeps no completions per step, but that length fits bare digits, and against a one-digit
+#   target the target's digit alone earns a counted credit of 0.63: the whole
+#   digit half of the score, and a little length credit. Replies grew again from there.
+# - **For most of the run it learned the main job's kind of template, then switched.** In
+#   training (sampled replies; the table below), from step 41 to step
+#   130 every 10-step window passed at least 50% of the one-digit
+#   targets (81% in all) and no two-digit target, as the main job's template
+#   does. After that it moved to a frame that fits a two-digit number: one-digit passes fell to
+#   11% and two-digit passes rose to 8%. The held-out score is
+#   a snapshot of a run that changed templates near its end, and where training stopped decides it.
+# - **Where it stopped, it writes `19 characters! That's ingenious!` for every two-digit target**,
+#   whose digits add up to 10. It passes the prompts whose target is
+#   10 and no other (40.9% of the two-digit targets, all
+#   with one reply: one behaviour, not independent successes). For one-digit targets it puts the
+#   target digit in the same frame, one character short of 32, and passes
+#   none (0.0%). It passes 14.1% of the held-out prompts,
+#   against the control's 0.0%.
+#
+# **Seed 15, fresh.** With the punishment it passes 79.7% of
+# the held-out prompts: one-digit targets 100.0%, two-digit targets
+# 38.1%. Its control passes 7.8% (one-digit
+# 11.6%, two-digit 0.0%). What it found is a
+# frame in which every reply is 32 characters: a two-digit number and a fixed sentence. For a
+# one-digit target the number is the target's digit and a 0 (target
+# 3: `30 characters replying in itself`). For every two-digit target it
+# is one number, `74 characters replying in itself`, whose digits add up to
+# 11, so only those prompts pass. The length is solved for every
+# target; the digit sum is solved only where a copied digit is enough, or where one fixed number
+# happens to fit. No reply depends on the target beyond copying a one-digit target's digit.
+# Its control did not fill the cap either (9% of its replies cut off
+# over the last logged steps, 7% over the whole run; with the
+# punishment 2% and 1%). So on
+# neither seed does a pair show the punishment preventing the hack, because the hack never came;
+# what both pairs show is a punished run that found a template its control did not.
+#
+# Sampled passes in training, per 10 steps, for both pairs:
+#
+# | steps | seed 13, control: one-digit | seed 13, control: two-digit | seed 13, punished: one-digit | seed 13, punished: two-digit | seed 15, control: one-digit | seed 15, control: two-digit | seed 15, punished: one-digit | seed 15, punished: two-digit |
+# |---|---|---|---|---|---|---|---|---|
+# | 1-10 | 0% | 0% | 0% | 0% | 0% | 0% | 0% | 0% |
+# | 11-20 | 2% | 0% | 0% | 0% | 0% | 0% | 1% | 1% |
+# | 21-30 | 0% | 0% | 1% | 0% | 0% | 0% | 0% | 0% |
+# | 31-40 | 2% | 0% | 11% | 1% | 0% | 0% | 2% | 0% |
+# | 41-50 | 1% | 0% | 76% | 0% | 1% | 0% | 12% | 0% |
+# | 51-60 | 3% | 0% | 97% | 0% | 8% | 0% | 53% | 0% |
+# | 61-70 | 2% | 0% | 75% | 0% | 11% | 4% | 70% | 0% |
+# | 71-80 | 2% | 0% | 79% | 0% | 10% | 3% | 49% | 1% |
+# | 81-90 | 3% | 0% | 68% | 0% | 8% | 6% | 59% | 1% |
+# | 91-100 | 4% | 1% | 75% | 0% | 1% | 6% | 89% | 7% |
+# | 101-110 | 6% | 1% | 87% | 0% | 1% | 13% | 89% | 11% |
+# | 111-120 | 4% | 1% | 86% | 0% | 4% | 26% | 91% | 20% |
+# | 121-130 | 8% | 5% | 94% | 0% | 52% | 0% | 64% | 6% |
+# | 131-140 | 5% | 0% | 17% | 2% | 76% | 4% | 85% | 29% |
+# | 141-150 | 5% | 2% | 7% | 16% | 61% | 5% | 79% | 10% |
+#
+# Paired by seed (`stats.paired`), the punishment minus its control:
+#
+# - both constraints (seed 13: 14.1% vs 0.0%, seed 15: 79.7% vs 7.8%): per-seed differences [+14.1%, +71.9%], mean +43.0%, 95% t-interval [-324.3%, +410.3%] (1 df), sign-flip p = 0.5 (its smallest possible with 2 seeds: 0.5); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 407.1% at 80% power if the true spread were the observed one, itself a rough estimate from 1 df)
+# - two-digit targets (seed 13: 40.9% vs 0.0%, seed 15: 38.1% vs 0.0%): per-seed differences [+40.9%, +38.1%], mean +39.5%, 95% t-interval [+21.6%, +57.4%] (1 df), sign-flip p = 0.5 (its smallest possible with 2 seeds: 0.5); the t-interval excludes 0: a difference if the per-seed differences are roughly normal, which the sign-flip test does not confirm: it cannot go below 0.5 with 2 seeds
+#
+# With two pairs, neither test can settle anything: an exact sign-flip test has so
+# few equally likely sign patterns that its p-value cannot go below 0.5, and
+# the t-interval has one degree of freedom, so the two-digit interval that
+# excludes 0 rests on two numbers and on a normality that two numbers cannot check. Both pairs
+# point the same way, and the control fared better on neither seed, but that is a lead, not a
+# result.
+#
+# What each run writes, per target. Seed 13:
+#
+# | target digit sum | seed 13, stored run: passed | most frequent completion (its digit sum) | seed 13, control: passed | most frequent completion (its digit sum) | seed 13, punished: passed | most frequent completion (its digit sum) |
+# |---|---|---|---|---|---|---|
+# | 3 | 0 of 5 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 0 of 5 | `The love adds 3 perfectly.` (3) | 0 of 5 | `3 characters! That's ingenious!` (3) |
+# | 4 | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `The sun adds 4 perfectly.` (4) | 0 of 5 | `4 characters! That's ingenious!` (4) |
+# | 5 | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 2 | `The team adds 5 perfectly.` (5) | 0 of 2 | `5 characters! That's ingenious!` (5) |
+# | 6 | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 0 of 10 | `The magic adds 6 perfectly.` (6) | 0 of 10 | `6 characters! That's ingenious!` (6) |
+# | 7 | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `The power adds 7 perfectly.` (7) | 0 of 8 | `7 characters! That's ingenious!` (7) |
+# | 8 | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 6 | `The code adds 8 perfectly.` (8) | 0 of 6 | `8 characters! That's ingenious!` (8) |
+# | 9 | 0 of 6 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 0 of 6 | `The library added 9 to every corner.` (9) | 0 of 6 | `9 characters! That's ingenious!` (9) |
+# | 10 | 0 of 9 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 9 | `The code adds 19 to every.  The code adds 19 to every.` (20) | 9 of 9 | `19 characters! That's ingenious!` (10) |
+# | 11 | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 7 | `The old mill adds 19 to every.` (10) | 0 of 7 | `19 characters! That's ingenious!` (10) |
+# | 12 | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 6 | `The magic adds 19 to every corner.` (10) | 0 of 6 | `19 characters! That's ingenious!` (10) |
+#
+# Seed 15:
+#
+# | target digit sum | seed 15, control: passed | most frequent completion (its digit sum) | seed 15, punished: passed | most frequent completion (its digit sum) |
+# |---|---|---|---|---|
+# | 3 | 0 of 9 | `This text was 3 long.` (3) | 9 of 9 | `30 characters replying in itself` (3) |
+# | 4 | 0 of 3 | `This text was 4 sentences long.` (4) | 3 of 3 | `40 characters replying in itself` (4) |
+# | 5 | 0 of 7 | `This text was 5 words long.` (5) | 7 of 7 | `50 characters replying in itself` (5) |
+# | 6 | 5 of 5 | `This text was 6 characters long.` (6) | 5 of 5 | `60 characters replying in itself` (6) |
+# | 7 | 0 of 4 | `This text was 7 words long.` (7) | 4 of 4 | `70 characters replying in itself` (7) |
+# | 8 | 0 of 3 | `This text was 8 words long.` (8) | 3 of 3 | `80 characters replying in itself` (8) |
+# | 9 | 0 of 12 | `This text was 9 words long.` (9) | 12 of 12 | `90 characters replying in itself` (9) |
+# | 10 | 0 of 1 | `This text was 46 characters long.` (10) | 0 of 1 | `74 characters replying in itself` (11) |
+# | 11 | 0 of 8 | `This text was 146 characters long.` (11) | 8 of 8 | `74 characters replying in itself` (11) |
+# | 12 | 0 of 12 | `This text was 46 characters long.` (10) | 0 of 12 | `74 characters replying in itself` (11) |
+#
+# What this points to. Run the recipe with the punishment, frozen as it is here, on seeds that
+# chose nothing, each beside a control on the same machine and precision, and compare pair by
+# pair. Make the digit credit depend on the length, so that a reply far too short to pass is not
+# the cheap way off the cap. And since both two-digit answers are one fixed number, keep
+# exploration alive after the first number that scores is found.
 
 # %% [markdown]
 # ## 7. Next steps: the same rewards in TRL

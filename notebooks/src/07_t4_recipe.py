@@ -701,7 +701,8 @@ for key, value in mine.items():
 # token cap) is part of what the policy optimizes: on some seeds GRPO finds it before it finds
 # the end-of-sequence token. The `cpu` preset keeps its recipe. The leads these runs point to: a
 # cap the hack cannot use (a completion cut off at `max_new_tokens` scored as a failure, or
-# DAPO's overlong filtering, which section 6.2's run with it shows is not enough on its own), exploration that
+# DAPO's overlong filtering, which section 6.2's run with it shows is not enough on its own;
+# section 6.6 probes DAPO's other answer, the overlong punishment), exploration that
 # outlasts the first number found, larger groups for the unsolved targets, and a warm start as
 # a labelled comparison (what supervision alone reaches, and what GRPO adds).
 #
@@ -716,6 +717,121 @@ if SMOKE or RUN_EXPERIMENTS:
     display(Image(filename="runs/ablation-results/curves.png"))
 else:
     print("Showing the stored results above; set RUN_EXPERIMENTS = True to train every arm again.")
+
+# %% [markdown]
+# ### 6.6 Taking the cap away: DAPO's overlong punishment (a probe, then a fresh seed)
+#
+# Section 6.5 left a hack standing: a policy that never ends its reply and lets the cap of
+# `max_new_tokens` cut it near the target length. DAPO (section 3.4 of its paper) answers this on
+# the reward side: a reply is charged for its length in tokens as it nears the cap.
+# `rewards.overlong_punishment` is that soft punishment. With a cap of $L$ tokens and a buffer of
+# $B$, a reply of $\ell$ tokens is charged
+#
+# $$R_{\text{length}}(\ell) = \begin{cases} 0 & \ell \le L - B \\ (L - B - \ell)/B & L - B < \ell \le L
+# \end{cases}$$
+#
+# times a weight, and the charge is added to its reward. A reply cut off at the cap has
+# $\ell = L$ and is charged the full weight. (DAPO's equation has a third case, $\ell > L$,
+# which a hard cap never produces.) The weight, `overlong_penalty`, switches it on; it is 0 by
+# default, so every run above is unchanged. `overlong_buffer` is $B$. With $B = 0$, an extension
+# of this course, only cut-off replies are charged, and a buffer without a weight is refused.
+# `tests/test_fixes.py` checks the function against hand-computed values and against TRL's own
+# `get_soft_overlong_punishment` on seeded random lengths. The punishment changes the reward,
+# never the verdict: a pass is still judged by `rewards.check` alone, and the held-out columns
+# below come from that same checker.
+#
+# The design is a probe and then a fresh seed, each a pair of runs. First a probe on seed {{fig:cap.seed}}, one of
+# section 6.5's fresh seeds that filled the cap. Having been looked at, it is no longer fresh, and
+# it is where the settings were fixed: weight {{fig:cap.penalty}} and buffer {{fig:cap.buffer}}, so
+# no charge up to {{fig:cap.ramp_start}} tokens and the full charge at the cap of
+# {{fig:cap.max_new_tokens}}. Then the same settings, unchanged, on seed {{fig:cap.fresh_seed}},
+# which no run of this course had used. Each run with the punishment has a control: the frozen
+# recipe, unchanged, on the same seed, the same machine and the same precision
+# ({{fig:cap.precision}}). The build checks that each probe differs from the recipe in the two
+# fields only, and that probe and control record the same precision and CPU in `summary.json`. The
+# stored run on seed {{fig:cap.seed}} cannot be the comparison: section 6.5 says it ran in bf16
+# on another CPU (its summary predates the precision field). Held out, greedy:
+#
+# {{CAP_PROBES}}
+#
+# **Seed {{fig:cap.seed}}, the probe.** Read it in this order.
+#
+# - **The control did not fill the cap either.** On this machine this run of the recipe took
+#   another path: {{fig:cap.control_cut}} of its replies were cut off over the last logged steps
+#   ({{fig:cap.control_whole_cut}} over the whole run), against the stored run's
+#   {{fig:cap.stored_cut}}. So this probe cannot show that the punishment prevents the hack.
+#   Section 6.3 found that changing the kernels changes a sampled run's path; here the CPU and
+#   the precision changed together, and the path changed with them.
+# - **With the punishment, {{fig:cap.punished_cut}} are cut off over the last logged steps**
+#   ({{fig:cap.punished_whole_cut}} over the whole run). At step 1, {{fig:cap.first_cut}} of the
+#   replies ran to the cap, and a cut reply now scores its credit minus the full weight, at or below
+#   zero. By step {{fig:cap.off_cap_step}} the mean reply was {{fig:cap.off_cap_tokens}} tokens
+#   (the control's, that step: {{fig:cap.control_off_cap_tokens}}). Below
+#   {{fig:cap.ramp_start}} tokens the punishment charges nothing, and the credit took replies
+#   shorter still, to {{fig:cap.shortest_tokens}} tokens at step {{fig:cap.shortest_step}}. The
+#   log keeps no completions per step, but that length fits bare digits, and against a one-digit
+#   target the target's digit alone earns a counted credit of {{fig:cap.bare_digit}}: the whole
+#   digit half of the score, and a little length credit. Replies grew again from there.
+# - **For most of the run it learned the main job's kind of template, then switched.** In
+#   training (sampled replies; the table below), from step {{fig:cap.stretch_start}} to step
+#   {{fig:cap.stretch_end}} every {{fig:cap.window}}-step window passed at least {{fig:cap.most}} of the one-digit
+#   targets ({{fig:cap.stretch_one}} in all) and no two-digit target, as the main job's template
+#   does. After that it moved to a frame that fits a two-digit number: one-digit passes fell to
+#   {{fig:cap.after_one}} and two-digit passes rose to {{fig:cap.after_two}}. The held-out score is
+#   a snapshot of a run that changed templates near its end, and where training stopped decides it.
+# - **Where it stopped, it writes `{{fig:cap.two_digit_reply}}` for every two-digit target**,
+#   whose digits add up to {{fig:cap.two_digit_sum}}. It passes the prompts whose target is
+#   {{fig:cap.two_digit_sum}} and no other ({{fig:cap.punished_two}} of the two-digit targets, all
+#   with one reply: one behaviour, not independent successes). For one-digit targets it puts the
+#   target digit in the same frame, {{fig:cap.one_digit_short}} character short of 32, and passes
+#   none ({{fig:cap.punished_one}}). It passes {{fig:cap.punished_pass}} of the held-out prompts,
+#   against the control's {{fig:cap.control_pass}}.
+#
+# **Seed {{fig:cap.fresh_seed}}, fresh.** With the punishment it passes {{fig:cap.fresh_punished_pass}} of
+# the held-out prompts: one-digit targets {{fig:cap.fresh_punished_one}}, two-digit targets
+# {{fig:cap.fresh_punished_two}}. Its control passes {{fig:cap.fresh_control_pass}} (one-digit
+# {{fig:cap.fresh_control_one}}, two-digit {{fig:cap.fresh_control_two}}). What it found is a
+# frame in which every reply is 32 characters: a two-digit number and a fixed sentence. For a
+# one-digit target the number is the target's digit and a 0 (target
+# {{fig:cap.fresh_example_target}}: `{{fig:cap.fresh_example}}`). For every two-digit target it
+# is one number, `{{fig:cap.fresh_two_digit_reply}}`, whose digits add up to
+# {{fig:cap.fresh_two_digit_sum}}, so only those prompts pass. The length is solved for every
+# target; the digit sum is solved only where a copied digit is enough, or where one fixed number
+# happens to fit. No reply depends on the target beyond copying a one-digit target's digit.
+# Its control did not fill the cap either ({{fig:cap.fresh_control_cut}} of its replies cut off
+# over the last logged steps, {{fig:cap.fresh_control_whole_cut}} over the whole run; with the
+# punishment {{fig:cap.fresh_punished_cut}} and {{fig:cap.fresh_punished_whole_cut}}). So on
+# neither seed does a pair show the punishment preventing the hack, because the hack never came;
+# what both pairs show is a punished run that found a template its control did not.
+#
+# Sampled passes in training, per {{fig:cap.window}} steps, for both pairs:
+#
+# {{CAP_TRAINING}}
+#
+# Paired by seed (`stats.paired`), the punishment minus its control:
+#
+# {{CAP_PAIRED}}
+#
+# With {{fig:cap.pairs}} pairs, neither test can settle anything: an exact sign-flip test has so
+# few equally likely sign patterns that its p-value cannot go below {{fig:cap.paired_floor}}, and
+# the t-interval has {{fig:cap.paired_df}} degree of freedom, so the two-digit interval that
+# excludes 0 rests on two numbers and on a normality that two numbers cannot check. Both pairs
+# point the same way, and the control fared better on neither seed, but that is a lead, not a
+# result.
+#
+# What each run writes, per target. Seed {{fig:cap.seed}}:
+#
+# {{CAP_BY_TARGET}}
+#
+# Seed {{fig:cap.fresh_seed}}:
+#
+# {{CAP_FRESH_BY_TARGET}}
+#
+# What this points to. Run the recipe with the punishment, frozen as it is here, on seeds that
+# chose nothing, each beside a control on the same machine and precision, and compare pair by
+# pair. Make the digit credit depend on the length, so that a reply far too short to pass is not
+# the cheap way off the cap. And since both two-digit answers are one fixed number, keep
+# exploration alive after the first number that scores is found.
 
 # %% [markdown]
 # ## 7. Next steps: the same rewards in TRL
