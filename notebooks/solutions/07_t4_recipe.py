@@ -947,11 +947,14 @@ else:
 # section 6.5's fresh seeds that filled the cap. Having been looked at, it is no longer fresh, and
 # it is where the settings were fixed: weight 1 and buffer 5, so
 # no charge up to 19 tokens and the full charge at the cap of
-# 24. Then the same settings, unchanged, on seed 15,
+# 24. So seed
+# 13 is a tuning seed, and only seed 15 below is fresh evidence.
+# Then the same settings, unchanged, on seed 15,
 # which no run of this course had used. Each run with the punishment has a control: the frozen
-# recipe, unchanged, on the same seed, the same machine and the same precision
-# (fp32). The build checks that each probe differs from the recipe in the two
-# fields only, and that probe and control record the same precision and CPU in `summary.json`. The
+# recipe, unchanged, on the same seed, run one after the other on this machine, in the same
+# precision (fp32). The build checks that each probe differs from the recipe in
+# the two fields only, and that probe and control record the same precision and the same CPU
+# capability (the vector instructions torch reports) in `summary.json`. The
 # stored run on seed 13 cannot be the comparison: section 6.5 says it ran in bf16
 # on another CPU (its summary predates the precision field). Held out, greedy:
 #
@@ -975,8 +978,8 @@ else:
 #   (2% over the whole run). At step 1, 75% of the
 #   replies ran to the cap, and a cut reply now scores its credit minus the full weight, at or below
 #   zero. By step 3 the mean reply was 5.7 tokens
-#   (the control's, that step: 11.9). Below
-#   19 tokens the punishment charges nothing, and the credit took replies
+#   (the control's, that step: 11.9). Up to
+#   19 tokens (the EOS counted) the punishment charges nothing, and the credit took replies
 #   shorter still, to 2.9 tokens at step 13. The
 #   log keeps no completions per step, but that length fits bare digits, and against a one-digit
 #   target the target's digit alone earns a counted credit of 0.63: the whole
@@ -1011,7 +1014,8 @@ else:
 # over the last logged steps, 7% over the whole run; with the
 # punishment 2% and 1%). So on
 # neither seed does a pair show the punishment preventing the hack, because the hack never came;
-# what both pairs show is a punished run that found a template its control did not.
+# what both pairs show is a punished run that found a different template from its control's
+# (seed 15's control wrote `This text was N ... long.`, the table at the end).
 #
 # Sampled passes in training, per 10 steps, for both pairs:
 #
@@ -1041,7 +1045,9 @@ else:
 # With two pairs, neither test can settle anything: an exact sign-flip test has so
 # few equally likely sign patterns that its p-value cannot go below 0.5, and
 # the t-interval has one degree of freedom, so the two-digit interval that
-# excludes 0 rests on two numbers and on a normality that two numbers cannot check. Both pairs
+# excludes 0 rests on two numbers and on a normality that two numbers cannot check. Its two
+# differences are close by chance of the draw: each is one fixed reply passing the held-out prompts
+# of one target sum, and the seeds hold different numbers of such prompts. Both pairs
 # point the same way, and the control fared better on neither seed, but that is a lead, not a
 # result.
 #

@@ -744,11 +744,14 @@ else:
 # section 6.5's fresh seeds that filled the cap. Having been looked at, it is no longer fresh, and
 # it is where the settings were fixed: weight {{fig:cap.penalty}} and buffer {{fig:cap.buffer}}, so
 # no charge up to {{fig:cap.ramp_start}} tokens and the full charge at the cap of
-# {{fig:cap.max_new_tokens}}. Then the same settings, unchanged, on seed {{fig:cap.fresh_seed}},
+# {{fig:cap.max_new_tokens}}. So seed
+# {{fig:cap.seed}} is a tuning seed, and only seed {{fig:cap.fresh_seed}} below is fresh evidence.
+# Then the same settings, unchanged, on seed {{fig:cap.fresh_seed}},
 # which no run of this course had used. Each run with the punishment has a control: the frozen
-# recipe, unchanged, on the same seed, the same machine and the same precision
-# ({{fig:cap.precision}}). The build checks that each probe differs from the recipe in the two
-# fields only, and that probe and control record the same precision and CPU in `summary.json`. The
+# recipe, unchanged, on the same seed, run one after the other on this machine, in the same
+# precision ({{fig:cap.precision}}). The build checks that each probe differs from the recipe in
+# the two fields only, and that probe and control record the same precision and the same CPU
+# capability (the vector instructions torch reports) in `summary.json`. The
 # stored run on seed {{fig:cap.seed}} cannot be the comparison: section 6.5 says it ran in bf16
 # on another CPU (its summary predates the precision field). Held out, greedy:
 #
@@ -766,8 +769,8 @@ else:
 #   ({{fig:cap.punished_whole_cut}} over the whole run). At step 1, {{fig:cap.first_cut}} of the
 #   replies ran to the cap, and a cut reply now scores its credit minus the full weight, at or below
 #   zero. By step {{fig:cap.off_cap_step}} the mean reply was {{fig:cap.off_cap_tokens}} tokens
-#   (the control's, that step: {{fig:cap.control_off_cap_tokens}}). Below
-#   {{fig:cap.ramp_start}} tokens the punishment charges nothing, and the credit took replies
+#   (the control's, that step: {{fig:cap.control_off_cap_tokens}}). Up to
+#   {{fig:cap.ramp_start}} tokens (the EOS counted) the punishment charges nothing, and the credit took replies
 #   shorter still, to {{fig:cap.shortest_tokens}} tokens at step {{fig:cap.shortest_step}}. The
 #   log keeps no completions per step, but that length fits bare digits, and against a one-digit
 #   target the target's digit alone earns a counted credit of {{fig:cap.bare_digit}}: the whole
@@ -802,7 +805,8 @@ else:
 # over the last logged steps, {{fig:cap.fresh_control_whole_cut}} over the whole run; with the
 # punishment {{fig:cap.fresh_punished_cut}} and {{fig:cap.fresh_punished_whole_cut}}). So on
 # neither seed does a pair show the punishment preventing the hack, because the hack never came;
-# what both pairs show is a punished run that found a template its control did not.
+# what both pairs show is a punished run that found a different template from its control's
+# (seed {{fig:cap.fresh_seed}}'s control wrote `This text was N ... long.`, the table at the end).
 #
 # Sampled passes in training, per {{fig:cap.window}} steps, for both pairs:
 #
@@ -815,7 +819,9 @@ else:
 # With {{fig:cap.pairs}} pairs, neither test can settle anything: an exact sign-flip test has so
 # few equally likely sign patterns that its p-value cannot go below {{fig:cap.paired_floor}}, and
 # the t-interval has {{fig:cap.paired_df}} degree of freedom, so the two-digit interval that
-# excludes 0 rests on two numbers and on a normality that two numbers cannot check. Both pairs
+# excludes 0 rests on two numbers and on a normality that two numbers cannot check. Its two
+# differences are close by chance of the draw: each is one fixed reply passing the held-out prompts
+# of one target sum, and the seeds hold different numbers of such prompts. Both pairs
 # point the same way, and the control fared better on neither seed, but that is a lead, not a
 # result.
 #
