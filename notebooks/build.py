@@ -267,9 +267,10 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "FRESH_VS_PRESET", fresh_vs_preset_markdown())
     if "{{CAP_PROBES}}" in text:
         from course_utils import ablation
-        runs = figures.cap_probe_runs()
-        probe, fresh = runs[:3], figures.cap_pair_runs(figures.CAP_FRESH_SEED)
-        pairs = [run for seed in figures.CAP_PAIRS for run in figures.cap_pair_runs(seed)]
+        runs = figures.cap_probe_runs()  # the stored run on the probe's seed, then every pair
+        stored, pairs = runs[:1], runs[1:]
+        probe = stored + figures.cap_pair_runs(figures.CAP_PROBE_SEED)
+        fresh = figures.cap_pair_runs(figures.CAP_FRESH_SEED)
         text = fill_markdown(text, "CAP_PROBES", ablation.cap_probes(runs, figures.frozen_recipe()))
         text = fill_markdown(text, "CAP_BY_TARGET",
                              ablation.completions_by_target(probe, figures.cap_labels(probe)))

@@ -413,8 +413,8 @@ def _check_cap_pairs() -> None:
         if {k for k in control_config if control_config[k] != recipe[k]} - {"seed", "out_dir"} or \
                 control_config["seed"] != config["seed"] or config["seed"] != seed:
             raise ValueError(f"lesson 7, 6.6's control must be the frozen recipe on the probe's seed: {control}")
-        machines = {(_json(f"cap-probes/{name}/summary.json").get("precision"),
-                     _json(f"cap-probes/{name}/summary.json").get("cpu_capability")) for name in (control, punished)}
+        summaries = [_json(f"cap-probes/{name}/summary.json") for name in (control, punished)]
+        machines = {(s.get("precision"), s.get("cpu_capability")) for s in summaries}
         if len(machines) != 1:
             raise ValueError(f"the probe and its control ran in different precisions or CPUs: {machines}")
 
@@ -445,7 +445,8 @@ def cap_figures() -> dict[str, str]:
     stored = cap_probe_runs()[0]
     after = lambda run: _json(f"{run.parent.name}/{run.name}/summary.json")["after"]["greedy"]  # noqa: E731
     config = _json(f"cap-probes/{CAP_PUNISHED}/config.json")
-    punished = RESULTS / "cap-probes" / CAP_PUNISHED
+    control, punished = cap_pair_runs(CAP_PROBE_SEED)
+    fresh_control, fresh_punished = cap_pair_runs(CAP_FRESH_SEED)
     samples = after(punished)["samples"]
     # what 6.6 says the probe writes: one reply for every two-digit target, and one-digit
     # replies that all miss the length by the same few characters
@@ -456,15 +457,14 @@ def cap_figures() -> dict[str, str]:
                          f"found {two} and {one_short}")
     steps = ablation.records(punished)
     shortest = min(steps, key=lambda r: r["completion_tokens"])
-    control_steps = ablation.records(RESULTS / "cap-probes" / CAP_CONTROL)
+    control_steps = ablation.records(control)
     # the step by which the punishment had driven replies off the cap: the first step at which
     # the probe's replies were shorter than half its first step's
     off_cap = next(r for r in steps if r["completion_tokens"] < steps[0]["completion_tokens"] / 2)
     start, end, one_inside, one_after, two_after = _one_digit_stretch(punished)
     # what a reply that is one bare digit, the target's own, earns under the counted credit
     bare = rewards.counted_score(rewards.check("5", 32, 5), 32, 5)
-    fresh = {arm: after(run) for arm, run in zip(("control", "punished"), cap_pair_runs(CAP_FRESH_SEED))}
-    fresh_samples = fresh["punished"]["samples"]
+    fresh_samples = after(fresh_punished)["samples"]
     fresh_two = {(x["completion"].strip(), x["digit_sum"]) for x in fresh_samples if x["target_digit_sum"] >= 10}
     if len(fresh_two) != 1:
         raise ValueError(f"lesson 7, 6.6 describes one two-digit reply on seed {CAP_FRESH_SEED}; found {fresh_two}")
@@ -480,8 +480,8 @@ def cap_figures() -> dict[str, str]:
     pairs = [[after(run) for run in cap_pair_runs(seed)] for seed in CAP_PAIRS]
     both = stats.paired([p["pass_both"] for _, p in pairs], [c["pass_both"] for c, _ in pairs])
     whole_cut = lambda run: statistics.mean(r["truncated_frac"] for r in ablation.records(run))  # noqa: E731
-    runs = {"stored": stored, "control": RESULTS / "cap-probes" / CAP_CONTROL, "punished": punished,
-            "fresh_control": cap_pair_runs(CAP_FRESH_SEED)[0], "fresh_punished": cap_pair_runs(CAP_FRESH_SEED)[1]}
+    runs = {"stored": stored, "control": control, "punished": punished,
+            "fresh_control": fresh_control, "fresh_punished": fresh_punished}
     return {"cap.seed": f"{CAP_PROBE_SEED}",
             "cap.fresh_seed": f"{CAP_FRESH_SEED}",
             "cap.pairs": _word(len(CAP_PAIRS)),
