@@ -253,6 +253,36 @@ def against_preset(runs: list[Path], result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def paired_arms(a: list[Path], b: list[Path], names: tuple[str, str]) -> str:
+    """Two arms run on the same seeds (``a[i]`` and ``b[i]`` share a seed): a markdown table of
+    each seed's held-out greedy pass rates and distinct completions in both arms, and each arm's
+    entropy over its last 5 logged steps; then arm a minus arm b, paired by seed through
+    ``stats.paired``, for both constraints and for the two-digit targets."""
+    def read(run: Path) -> tuple[int, dict, list[dict]]:
+        config = json.loads((run / "config.json").read_text())
+        return config["seed"], json.loads((run / "summary.json").read_text())["after"]["greedy"], records(run)
+    rows_a, rows_b = [read(r) for r in a], [read(r) for r in b]
+    if [s for s, _, _ in rows_a] != [s for s, _, _ in rows_b] or len(rows_a) < 2:
+        raise ValueError(f"paired arms need the same seeds, in order, at least 2: "
+                         f"{[s for s, _, _ in rows_a]} and {[s for s, _, _ in rows_b]}")
+    A, B = names
+    lines = [f"| seed | {A}: both | {A}: one-digit | {A}: two-digit | {A}: distinct | {A}: entropy, "
+             f"last 5 steps | {B}: both | {B}: one-digit | {B}: two-digit | {B}: distinct | {B}: "
+             f"entropy, last 5 steps |", "|" + "---|" * 11]
+    for (seed, x, sx), (_, y, sy) in zip(rows_a, rows_b):
+        cells = []
+        for after, steps in ((x, sx), (y, sy)):
+            cells += [f"{after['pass_both']:.1%}", f"{after['pass_both_one_digit']:.1%}",
+                      f"{after['pass_both_two_digit']:.1%}", f"{after['distinct_completions']}",
+                      f"{tail_mean(steps, 'entropy'):.2f}"]
+        lines.append(f"| {seed} | " + " | ".join(cells) + " |")
+    lines.append("")
+    for key, what in (("pass_both", "both constraints"), ("pass_both_two_digit", "two-digit targets")):
+        comparison = stats.paired([x[key] for _, x, _ in rows_a], [y[key] for _, y, _ in rows_b])
+        lines.append(f"- {A} minus {B}, {what}: {comparison.verdict('{:+.1%}')}")
+    return "\n".join(lines) + "\n"
+
+
 def cap_probes(runs: list[Path], recipe: dict) -> str:
     """A markdown table of single-seed probes against the token-cap hack (lesson 7, 6.6): each
     run's change to the frozen recipe (``recipe``, a stored config), the precision it computed

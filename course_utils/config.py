@@ -110,6 +110,15 @@ class Config:
     overlong_buffer: int = _f(0, "DAPO's L_cache: the last tokens before max_new_tokens over which "
                                  "the overlong punishment ramps in; 0: only a completion cut off "
                                  "at max_new_tokens without an EOS is punished")
+    is_correction: str = _f("none", "the training-inference mismatch's correction (TRL's "
+                                    "vllm_importance_sampling_mode; lesson 4, section 6): weight "
+                                    "each token's surrogate by pi_trainer / pi_sampler, per token "
+                                    "or per sequence, truncated at is_clip_max or masked (0) above "
+                                    "it. It matters where a bf16 copy samples (precision bf16 on a "
+                                    "CPU); 'none': off",
+                            ("none", "token_truncate", "token_mask", "sequence_truncate", "sequence_mask"))
+    is_clip_max: float = _f(3.0, "is_correction: the largest weight kept (TRL's "
+                                 "vllm_importance_sampling_clip_max)")
     kl_coef: float = _f(0.0, "beta, weight of the k3 KL to the reference model; 0 loads no "
                              "reference model")
     kl_schedule: str = _f("constant", "course extension: 'reward_aware' scales kl_coef each step by "
@@ -331,6 +340,7 @@ FLOAT_BOUNDS = [("temperature", 0.01, 10.0, "from 0.01 to 10 (evaluation has a g
                 ("clip_eps_high", 0.0, 10.0, "> 0 and at most 10"),
                 ("kl_coef", 0.0, 100.0, "from 0 to 100"),
                 ("overlong_penalty", 0.0, 100.0, "from 0 (off) to 100"),
+                ("is_clip_max", 1.0, 1e6, "at least 1 (a weight of 1 is no correction) and at most 1e6"),
                 ("entropy_coef", 0.0, 100.0, "from 0 to 100"),
                 ("entropy_target", 0.0, 20.0, "from 0 to 20 nats"),
                 ("entropy_weight_max", 0.0, 100.0, "> 0 and at most 100"),

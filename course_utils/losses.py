@@ -311,12 +311,15 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
               eps_high: float = 0.2, ref_logprobs: torch.Tensor | None = None, beta: float = 0.0,
               entropy: torch.Tensor | None = None, entropy_weight: float = 0.0,
               max_completion_length: int | None = None, total_sequences: int | None = None,
-              total_tokens: int | float | None = None,
-              micro_batches: int = 1) -> tuple[torch.Tensor, dict[str, float]]:
+              total_tokens: int | float | None = None, micro_batches: int = 1,
+              sampling_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The GRPO objective, negated into a loss (DeepSeekMath eq. 3, plus the options above).
 
-    per-token loss = -min(rho A, clip(rho) A) + beta * KL_k3 - entropy_weight * H
+    per-token loss = -w min(rho A, clip(rho) A) + beta * KL_k3 - entropy_weight * H
     The KL term sits in the loss (not in the reward) so it regularizes every token directly.
+    ``sampling_weights`` w (constants, 1 if None) correct for tokens drawn by a sampler other
+    than the trainer (``mismatch.importance_weights``); as in TRL they weight the surrogate only,
+    since the KL and entropy terms are computed under the trainer itself.
     """
     # Whatever padding positions hold must not matter, not even an inf (0 * inf is NaN): replace
     # it with 0 before any exp, which also keeps the gradient at padding exactly 0.
@@ -328,6 +331,10 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
         entropy = torch.where(real, entropy, 0.0)
     per_token, clipped = clipped_surrogate(logprobs, old_logprobs, advantages, eps_low, eps_high)
     stats = {"clip_fraction": masked_mean(clipped.float(), mask)}
+    if sampling_weights is not None:
+        weights = torch.where(real, sampling_weights.detach(), 0.0)
+        per_token = per_token * weights
+        stats["is_weight_mean"] = masked_mean(weights, mask)
     if beta > 0:
         if ref_logprobs is None:
             raise ValueError("beta > 0 needs ref_logprobs from the reference model")

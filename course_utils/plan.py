@@ -18,7 +18,8 @@ layer's input plus one layer's worth with gradient checkpointing (under autocast
 inputs are the fp32 residual stream: 4 bytes each, not 2). The logits, kept only for the
 completion positions, cost about 16 bytes per (token, vocabulary entry) in fp32: the output and
 its tempered copy, both kept for the backward, and two transient tensors of the same size.
-``tests/test_plan.py`` checks the total against a peak measured on the CPU.
+``tests/test_plan.py`` checks the total against peaks measured on the CPU (one live, the larger
+ones stored by ``benchmarks/memory_peaks.py``).
 
 Units: memory is in GiB (2**30 bytes), the unit of ``torch.cuda`` and of its out-of-memory
 messages. The comparison on a GPU is with ``torch.cuda.max_memory_reserved`` (the allocator's

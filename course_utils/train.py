@@ -32,7 +32,7 @@ from pathlib import Path
 
 import torch
 
-from . import checkpoint, cpu, curriculum, data, interrupt, losses, models, plan, rewards
+from . import checkpoint, cpu, curriculum, data, interrupt, losses, mismatch, models, plan, rewards
 from .config import Config, ConfigError, PRESETS, load_config, smoke_mode
 from .rollout import NonFiniteLogits, Rollout, completion_logprobs, concat_rollouts, rollout
 
@@ -379,6 +379,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     # log-probs (taken before any weight moves), so the ratio measures the policy's change and
     # not the two networks' rounding (the sampler-trainer gap: benchmarks/RESULTS.md).
     trainer_old: dict[int, torch.Tensor] = {}
+    trainer_first: dict[int, torch.Tensor] = {}   # the same, for the mismatch's correction
     skipped_before = policy.counters["nonfinite_skipped"]
     for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
@@ -396,17 +397,34 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                 # log-probs, or with a bf16 sampler the trainer's own first ones (above).
                 if cfg.updates_per_batch == 1:
                     old = logprobs.detach()
-                elif not cpu_bf16(cfg):   # pi_old: the sampler's log-probs, same numerics
-                    old = ro.logprobs[rows]
+                elif not cpu_bf16(cfg) and cfg.is_correction == "none":
+                    old = ro.logprobs[rows]   # pi_old: the sampler's log-probs, same numerics
+                    # (with the correction on, pi_old is the trainer's, as in TRL, so the
+                    # weights below carry the mismatch once, not the ratio as well)
                 else:
                     old = trainer_old.setdefault(start, logprobs.detach())   # kept from update 0
+                weights, first = None, None
+                if cpu_bf16(cfg) or cfg.is_correction != "none":   # two numerics, or a correction
+                    # the trainer's log-probs before any weight moves (update 0), as TRL takes
+                    # them from pi_old's forward, against the sampler's on the same tokens
+                    first = trainer_first.setdefault(start, logprobs.detach())
+                if cfg.is_correction != "none":   # weights pi_trainer / pi_sampler
+                    weights = mismatch.importance_weights(first, ro.logprobs[rows], mask[rows],
+                                                          cfg.is_correction, cfg.is_clip_max)
                 loss, stats = losses.grpo_loss(
                     logprobs, old, advantages_local[rows], mask[rows], loss_type=cfg.loss_type,
                     eps_low=cfg.clip_eps_low, eps_high=cfg.clip_eps_high,
                     ref_logprobs=None if ref_logprobs is None else ref_logprobs[rows],
                     beta=beta, entropy=entropy, entropy_weight=ent_weight,
                     max_completion_length=cfg.max_new_tokens, total_sequences=n_seq,
-                    total_tokens=n_tok, micro_batches=cfg.grad_accum * W)
+                    total_tokens=n_tok, micro_batches=cfg.grad_accum * W,
+                    sampling_weights=weights)
+                if first is not None:
+                    # the sampler-trainer gap per token on this batch (benchmarks/RESULTS.md
+                    # measures it once; this logs how it moves as the policy trains)
+                    real = ro.completion_mask[rows]   # every sampled token, filtered or not
+                    gap = torch.where(real.bool(), first - ro.logprobs[rows], 0.0).abs()
+                    stats["sampler_gap_abs"] = losses.masked_mean(gap, real)
             if not torch.isfinite(loss):
                 step_ok = False
                 break

@@ -103,9 +103,14 @@ MAPPING: tuple[Row, ...] = (
         note="the course trains on every token; 0.2 keeps the highest-entropy fifth (lesson 6)"),
     Row((), {"importance_sampling_level": "token"},
         note="the course's ratio is per token; 'sequence' is GSPO's"),
-    Row((), {"use_vllm": False, "vllm_importance_sampling_correction": True},
-        note="the course samples with the model it trains; the correction acts only with vLLM's "
-             "sampler (lesson 4, section 6)"),
+    Row((), {"use_vllm": False},
+        note="the course samples with its own loop: the policy, or under bf16 on a CPU a bf16 "
+             "copy of it"),
+    Row(("is_correction", "is_clip_max"),
+        {"vllm_importance_sampling_correction": True, "vllm_importance_sampling_mode": "sequence_mask",
+         "vllm_importance_sampling_clip_max": 3.0},
+        note="TRL corrects only vLLM's samples, on by default; the course corrects its bf16 "
+             "copy's, off by default ('none'; lesson 4, section 6, and lesson 7, section 6.7)"),
     Row(("target_sampling", "hard_first_steps", "hard_first_ramp"), {"shuffle_dataset": True},
         note="'uniform' is TRL's shuffle; 'prioritized' and hard_first_steps(_ramp) "
              "(course_utils.curriculum) have no TRL flag"),
@@ -152,6 +157,9 @@ def no_equivalent(cfg: Config) -> list[str]:
     elif cfg.overlong_penalty:
         lines.append("overlong_penalty (add trl.rewards.get_soft_overlong_punishment to the "
                      "reward functions, weighted by reward_weights)")
+    if cfg.is_correction != "none":
+        lines.append(f"is_correction={cfg.is_correction!r} (TRL corrects only vLLM's samples; "
+                     f"the kwargs carry the mode, which acts once use_vllm=True)")
     if cfg.hard_first_steps:
         ramp = ", ramped" if cfg.hard_first_ramp else ""
         lines.append(f"hard_first_steps={cfg.hard_first_steps}{ramp} (TRL has no curriculum)")
@@ -185,6 +193,9 @@ def grpo_config_kwargs(cfg: Config, precision: str | None = None) -> tuple[dict[
         epsilon_high=cfg.clip_eps_high, beta=cfg.kl_coef, use_bias_correction_kl=False,
         mask_truncated_completions=cfg.overlong_filter, top_entropy_quantile=1.0,
         importance_sampling_level="token", shuffle_dataset=True,
+        vllm_importance_sampling_correction=cfg.is_correction != "none",
+        vllm_importance_sampling_mode="sequence_mask" if cfg.is_correction == "none" else cfg.is_correction,
+        vllm_importance_sampling_clip_max=cfg.is_clip_max,
         fp16=precision == "fp16", bf16=precision == "bf16",
         gradient_checkpointing=cfg.gradient_checkpointing, use_cpu=cfg.device == "cpu",
         seed=cfg.seed, num_train_epochs=cfg.epochs,

@@ -187,6 +187,12 @@ def cap_paired_markdown() -> str:
     return "\n".join(lines) + "\n"
 
 
+def precision_pairs_markdown() -> str:
+    """Lesson 7, 6.7: the punished recipe in fp32 and in bf16 on the same seeds, paired."""
+    from course_utils import ablation
+    return ablation.paired_arms(*figures.precision_pair_runs(), ("fp32", "bf16"))
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -278,6 +284,8 @@ def render(source: Path, learner: bool) -> dict[str, str]:
                              ablation.completions_by_target(fresh, figures.cap_labels(fresh)))
         text = fill_markdown(text, "CAP_TRAINING", ablation.sampled_passes_table(pairs, figures.cap_labels(pairs)))
         text = fill_markdown(text, "CAP_PAIRED", cap_paired_markdown())
+    if "{{PRECISION_PAIRS}}" in text:
+        text = fill_markdown(text, "PRECISION_PAIRS", precision_pairs_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
@@ -350,7 +358,8 @@ README_RESULTS = {"cpu": lambda: demoted((RESULTS / "cpu" / "report.md").read_te
                   "ablation": lambda: (RESULTS / "ablation" / "report.md").read_text().strip(),
                   "timings": timings_markdown, "trl": trl_markdown,
                   "fresh": lambda: fresh_markdown().strip(),
-                  "fresh-vs-preset": lambda: fresh_vs_preset_markdown().strip()}
+                  "fresh-vs-preset": lambda: fresh_vs_preset_markdown().strip(),
+                  "precision": lambda: precision_pairs_markdown().strip()}
 
 
 # A figure in the README's prose: <!-- fig: NAME -->VALUE<!-- end fig -->, VALUE rendered from

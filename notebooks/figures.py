@@ -524,6 +524,125 @@ def cap_figures() -> dict[str, str]:
             **{f"cap.{name}_whole_cut": f"{whole_cut(run):.0%}" for name, run in runs.items()}}
 
 
+# lesson 7, 6.7: the recipe with 6.6's overlong punishment on the same seeds in both precisions,
+# one run after the other on one CPU with bf16 matrix units (notebooks/results/precision-pairs).
+PRECISION_SEEDS = (16, 17, 18, 19, 20)
+
+
+def precision_pair_runs() -> tuple[list[Path], list[Path]]:
+    """The fp32 runs, then the bf16 runs, in the order of PRECISION_SEEDS (those stored)."""
+    folder = RESULTS / "precision-pairs"
+    seeds = [s for s in PRECISION_SEEDS if (folder / f"punished-bf16-seed{s}" / "summary.json").exists()]
+    return ([folder / f"punished-fp32-seed{s}" for s in seeds],
+            [folder / f"punished-bf16-seed{s}" for s in seeds])
+
+
+def _check_precision_pairs() -> None:
+    """What 6.7 says of its runs: each is 6.6's punished recipe on its seed, the pair differs in
+    the precision alone, and both ran on the same CPU capability, one in each precision."""
+    from course_utils.config import Config
+
+    # every field, those added after 6.6's runs at their defaults (off), so a run that turned on
+    # a later option (is_correction, say) is not taken for the recipe
+    defaults = Config().to_dict()
+    punished = {k: v for k, v in {**defaults, **_json(f"cap-probes/{CAP_PUNISHED}/config.json")}.items()
+                if k not in ("seed", "out_dir")}
+    for fp32, bf16 in zip(*precision_pair_runs()):
+        configs = [{**defaults, **_json(f"precision-pairs/{run.name}/config.json")} for run in (fp32, bf16)]
+        summaries = [_json(f"precision-pairs/{run.name}/summary.json") for run in (fp32, bf16)]
+        for config in configs:
+            changed = {k for k in punished if config[k] != punished[k]} - {"precision"}
+            if changed or config["seed"] != configs[0]["seed"]:
+                raise ValueError(f"lesson 7, 6.7 says each run is 6.6's punished recipe on its seed; "
+                                 f"{config['out_dir']} changes {changed}")
+        if [s["precision"] for s in summaries] != ["fp32", "bf16"] or \
+                summaries[0]["cpu_capability"] != summaries[1]["cpu_capability"]:
+            raise ValueError(f"lesson 7, 6.7's pairs are fp32 and bf16 on one CPU: {fp32.name} "
+                             f"{[(s['precision'], s['cpu_capability']) for s in summaries]}")
+
+
+def precision_figures() -> dict[str, str]:
+    """Lesson 7, 6.7, and the README: the punished recipe in fp32 and in bf16, paired by seed."""
+    from course_utils import ablation, stats
+
+    _check_precision_pairs()
+    fp32, bf16 = precision_pair_runs()
+    if len(fp32) < 2:
+        raise ValueError("lesson 7, 6.7 needs at least two stored pairs in results/precision-pairs")
+    after = lambda run: _json(f"precision-pairs/{run.name}/summary.json")["after"]["greedy"]  # noqa: E731
+    entropy = lambda run: ablation.tail_mean(ablation.records(run), "entropy")  # noqa: E731
+    seconds = lambda run: _json(f"precision-pairs/{run.name}/summary.json")["seconds"]  # noqa: E731
+    seeds = [_json(f"precision-pairs/{run.name}/config.json")["seed"] for run in fp32]
+    figs = {"precision.seed_list": _seeds(seeds), "precision.pairs": _word(len(seeds)),
+            "precision.capability": _json(f"precision-pairs/{fp32[0].name}/summary.json")["cpu_capability"],
+            "precision.bf16_higher_entropy": _word(sum(entropy(b) > entropy(f) for f, b in zip(fp32, bf16))),
+            "precision.seconds_ratio": f"{statistics.mean(map(seconds, fp32)) / statistics.mean(map(seconds, bf16)):.2f}"}
+    for name, runs in (("fp32", fp32), ("bf16", bf16)):
+        figs[f"precision.{name}_entropy"] = f"{statistics.mean(map(entropy, runs)):.2f}"
+        figs[f"precision.{name}_seconds"] = f"{statistics.mean(map(seconds, runs)):.0f}"
+        for key, field in (("pass", "pass_both"), ("one", "pass_both_one_digit"), ("two", "pass_both_two_digit")):
+            values = [after(run)[field] for run in runs]
+            figs[f"precision.{name}_{key}_mean"] = f"{statistics.mean(values):.1%}"
+            figs[f"precision.{name}_{key}_worst"] = f"{min(values):.1%}"
+    # what 6.7 says: the precisions disagree in sign from seed to seed, no run passes a two-digit
+    # target, and each run either found a template that passes every one-digit target or not
+    diffs = [after(f)["pass_both"] - after(b)["pass_both"] for f, b in zip(fp32, bf16)]
+    if not (any(d > 0 for d in diffs) and any(d < 0 for d in diffs)):
+        raise ValueError(f"lesson 7, 6.7 says the sign of fp32 minus bf16 changes from seed to seed: {diffs}")
+    two_digit_runs = [r for r in fp32 + bf16 if after(r)["pass_both_two_digit"] > 0]
+    for r in two_digit_runs:   # 6.7: each passes one target sum only, with one fixed number
+        sums = {x["digit_sum"] for x in after(r)["samples"] if x["target_digit_sum"] >= 10 and
+                x["digit_sum"] == x["target_digit_sum"] and x["n_chars"] == x["target_chars"]}
+        if len(sums) != 1:
+            raise ValueError(f"lesson 7, 6.7 says {r.name} passes one two-digit target sum; it passes {sums}")
+    template = [r for r in fp32 + bf16 if after(r)["pass_both_one_digit"] == 1.0]
+    # the seeds on which one precision found the template and the other did not, each way: an
+    # exact two-sided sign test on those discordant pairs (McNemar's exact test)
+    only_fp32 = sum(f in template and b not in template for f, b in zip(fp32, bf16))
+    only_bf16 = sum(b in template and f not in template for f, b in zip(fp32, bf16))
+    if not (only_fp32 and only_bf16):
+        raise ValueError(f"lesson 7, 6.7 says the template came with fp32 on some seeds and with bf16 on "
+                         f"others; fp32 only on {only_fp32}, bf16 only on {only_bf16}")
+    discordant = only_fp32 + only_bf16
+    sign_p = min(1.0, 2 * sum(math.comb(discordant, k) for k in range(min(only_fp32, only_bf16) + 1))
+                 / 2 ** discordant)
+    others = [r for r in fp32 + bf16 if r not in template]
+    gaps = [ablation.records(r) for r in bf16]
+    gaps = [statistics.mean(x["sampler_gap_abs"] for x in steps) for steps in gaps
+            if all("sampler_gap_abs" in x for x in steps)]
+    figs.update({"precision.abs_diff_mean": f"{100 * statistics.mean(abs(d) for d in diffs):.1f}",
+                 "precision.runs": _word(len(fp32 + bf16)),
+                 "precision.template_runs": _word(len(template)),
+                 "precision.template_pass_low": f"{min(after(r)['pass_both'] for r in template):.1%}",
+                 "precision.template_pass_high": f"{max(after(r)['pass_both'] for r in template):.1%}",
+                 "precision.other_pass_high": f"{max(after(r)['pass_both'] for r in others):.1%}",
+                 "precision.other_one_high": f"{max(after(r)['pass_both_one_digit'] for r in others):.1%}",
+                 "precision.two_digit_runs": _word(len(two_digit_runs)),
+                 "precision.two_digit_best": f"{max([after(r)['pass_both_two_digit'] for r in two_digit_runs] or [0]):.1%}",
+                 "precision.only_fp32": _word(only_fp32), "precision.only_bf16": _word(only_bf16),
+                 "precision.template_sign_p": f"{sign_p:.3g}",
+                 "precision.max_abs_diff": f"{100 * max(abs(d) for d in diffs):.0f}",
+                 "precision.min_abs_diff": f"{100 * min(abs(d) for d in diffs):.0f}",
+                 "precision.fp32_template_runs": _word(sum(r in template for r in fp32)),
+                 "precision.bf16_template_runs": _word(sum(r in template for r in bf16)),
+                 "precision.gap_runs": _word(len(gaps)),
+                 "precision.gap_mean": f"{statistics.mean(gaps):.3f}" if gaps else "not logged",
+                 # benchmarks/logprob_gap.py on the untrained policy (benchmarks/RESULTS.md)
+                 "precision.sequence_weight_sd": f"{json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['sequence log weight sum_t (trainer - sampler)']['sd']:.2f}",
+                 "precision.weight_low": f"{math.exp(-json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['sequence log weight sum_t (trainer - sampler)']['sd']):.2f}",
+                 "precision.weight_high": f"{math.exp(json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['sequence log weight sum_t (trainer - sampler)']['sd']):.2f}",
+                 "precision.gap_untrained": f"{json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['trainer - sampler']['mean_abs']:.3f}"})
+    for key, field in (("pass", "pass_both"), ("two", "pass_both_two_digit")):
+        comparison = stats.paired([after(r)[field] for r in fp32], [after(r)[field] for r in bf16])
+        low, high = comparison.interval
+        figs.update({f"precision.paired_{key}_mean": f"{comparison.mean:+.1%}",
+                     f"precision.paired_{key}_low": f"{low:+.1%}", f"precision.paired_{key}_high": f"{high:+.1%}",
+                     f"precision.paired_{key}_p": f"{comparison.p_value:.3g}",
+                     f"precision.paired_{key}_floor": f"{comparison.p_floor:.3g}",
+                     f"precision.paired_{key}_df": _word(comparison.n - 1)})
+    return figs
+
+
 def fresh_preset() -> dict:
     """The cpu preset on the same fresh seeds, as ``python -m course_utils.ablation --seeds 10 11
     12 13 14 --arms "full recipe (the cpu preset)" --out notebooks/results/fresh-seeds/preset``
@@ -586,7 +705,7 @@ def data_figures() -> dict[str, str]:
 
 def figures() -> dict[str, str]:
     return {**plan_figures(), **gpu_check_figures(), **track_figures(), **cpu_run_figures(), **data_figures(),
-            **fresh_figures(), **cap_figures()}
+            **fresh_figures(), **cap_figures(), **precision_figures()}
 
 
 def fill(text: str, source: str) -> str:

@@ -1,5 +1,6 @@
-"""Run in a fresh process by tests/test_plan.py: two GRPO-shaped training steps of a random
-model with Qwen2.5-0.5B's architecture on the CPU; prints the peak resident memory they added."""
+"""Run in a fresh process by tests/test_plan.py and benchmarks/memory_peaks.py: two GRPO-shaped
+training steps of a random model with Qwen2.5-0.5B's architecture on the CPU; prints the peak
+resident memory they added."""
 import json
 import resource
 import sys

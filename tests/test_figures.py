@@ -409,3 +409,39 @@ def test_every_cap_probe_pair_is_checked(monkeypatch):
     _cap_json_with(monkeypatch, punished, lr=1.0)
     with pytest.raises(ValueError, match=f"{punished} changes"):
         figures.cap_figures()
+
+
+def _precision_json_with(monkeypatch, rel_path: str, **changes):
+    real = figures._json
+    monkeypatch.setattr(figures, "_json", lambda rel: {**real(rel), **changes}
+                        if rel == rel_path else real(rel))
+
+
+@pytest.mark.parametrize("file, changes, mistake", [
+    ("punished-fp32-seed16/config.json", {"lr": 1e-4}, "6.6's punished recipe"),
+    ("punished-bf16-seed16/config.json", {"overlong_penalty": 0.0}, "6.6's punished recipe"),
+    ("punished-bf16-seed16/config.json", {"seed": 99}, "6.6's punished recipe"),
+    ("punished-bf16-seed16/summary.json", {"precision": "fp32"}, "fp32 and bf16 on one CPU"),
+    ("punished-bf16-seed16/summary.json", {"cpu_capability": "AVX2"}, "fp32 and bf16 on one CPU"),
+])
+def test_the_precision_figures_refuse_a_pair_that_is_not_what_6_7_says(monkeypatch, file, changes, mistake):
+    figures.precision_figures()  # the stored files pass
+    _precision_json_with(monkeypatch, f"precision-pairs/{file}", **changes)
+    with pytest.raises(ValueError, match=mistake):
+        figures.precision_figures()
+
+
+def test_the_precision_figures_refuse_prose_the_stored_runs_stop_supporting(monkeypatch):
+    fp32, bf16 = figures.precision_pair_runs()
+    real = figures._json
+    # every fp32 run ahead of its bf16 twin: the difference no longer changes sign
+    ahead = {f"precision-pairs/{run.name}/summary.json" for run in fp32}
+
+    def lifted(rel):
+        value = real(rel)
+        if rel in ahead:
+            value["after"]["greedy"]["pass_both"] = 1.0
+        return value
+    monkeypatch.setattr(figures, "_json", lifted)
+    with pytest.raises(ValueError, match="changes from seed to seed"):
+        figures.precision_figures()

@@ -236,6 +236,54 @@ def test_grpo_loss_kl_and_entropy_terms_by_hand():
         losses.grpo_loss(logp, logp, torch.tensor([0.0]), mask, beta=0.1)
 
 
+@pytest.mark.parametrize("seed, shape, loss_type", [(0, (4, 3), "grpo"), (1, (6, 5), "bnpo"),
+                                                     (2, (3, 7), "dr_grpo")])
+def test_sampling_weights_scale_each_tokens_surrogate_and_nothing_else(seed, shape, loss_type):
+    # On-policy (rho = 1) the weighted loss's gradient is REINFORCE with w_t A as each token's
+    # weight; the KL and entropy terms are the trainer's own and are not weighted (TRL's order).
+    g = torch.Generator().manual_seed(seed)
+    n, T = shape
+    logp = (torch.randn(n, T, generator=g) - 1).requires_grad_(True)
+    ref, ent = torch.randn(n, T, generator=g) - 1, torch.rand(n, T, generator=g)
+    mask = (torch.rand(n, T, generator=g) > 0.3).float()
+    mask[:, 0] = 1
+    adv = torch.randn(n, generator=g)
+    w = torch.rand(n, T, generator=g) * 3
+    w_before = w.clone()
+    w_padded = torch.where(mask.bool(), w, float("inf"))   # padding must not matter, not even inf
+    kw = dict(loss_type=loss_type, ref_logprobs=ref, beta=0.05, entropy=ent, entropy_weight=0.01,
+              max_completion_length=T)
+    loss, stats = losses.grpo_loss(logp, logp.detach(), adv, mask, sampling_weights=w_padded, **kw)
+    (grad,) = torch.autograd.grad(loss, logp)
+    by_hand = -w * adv[:, None] * torch.exp(logp - logp.detach()) + 0.05 * losses.k3_kl(logp, ref) - 0.01 * ent
+    expected = losses.aggregate(by_hand, mask, loss_type, T)
+    (grad_by_hand,) = torch.autograd.grad(expected, logp)
+    assert torch.isfinite(loss) and loss.item() == pytest.approx(expected.item(), rel=1e-5, abs=1e-7)
+    assert torch.allclose(grad, grad_by_hand, atol=1e-6)
+    assert stats["is_weight_mean"] == pytest.approx(float((w * mask).sum() / mask.sum()), rel=1e-6)
+    assert torch.equal(w, w_before)
+    # weights of 1 are no correction: the same loss, bitwise
+    plain, _ = losses.grpo_loss(logp, logp.detach(), adv, mask, **kw)
+    ones, _ = losses.grpo_loss(logp, logp.detach(), adv, mask, sampling_weights=torch.ones(n, T), **kw)
+    assert torch.equal(plain, ones)
+
+
+def test_sampling_weights_off_policy_weight_the_clipped_surrogate_and_get_no_gradient():
+    g = torch.Generator().manual_seed(3)
+    logp = (torch.randn(5, 4, generator=g) - 1).requires_grad_(True)
+    old = logp.detach() + 0.5 * torch.randn(5, 4, generator=g)   # ratios well away from 1: clipping acts
+    mask, adv = torch.ones(5, 4), torch.randn(5, generator=g)
+    w = (torch.rand(5, 4, generator=g) * 2).requires_grad_(True)
+    loss, stats = losses.grpo_loss(logp, old, adv, mask, loss_type="bnpo", eps_low=0.1, eps_high=0.2,
+                                   sampling_weights=w)
+    loss.backward()
+    surrogate, clipped = losses.clipped_surrogate(logp, old, adv, 0.1, 0.2)
+    assert clipped.any() and stats["clip_fraction"] > 0
+    by_hand = losses.aggregate(surrogate * w.detach(), mask, "bnpo")
+    assert loss.item() == pytest.approx(by_hand.item(), rel=1e-6)
+    assert w.grad is None   # the weights are constants of the step
+
+
 def test_reward_aware_kl_by_hand():
     kl = losses.RewardAwareKL(beta=0.1, clip_range=4.0, momentum=0.9, eps=1e-12)
     wide = torch.tensor([0.0, 1.0, 0.0, 1.0])            # variance 0.25

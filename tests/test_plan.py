@@ -1,4 +1,4 @@
-"""The memory plan against a peak measured on the CPU, and the time plan's arithmetic."""
+"""The memory plan against peaks measured on the CPU, and the time plan's arithmetic."""
 import json
 import os
 import subprocess
@@ -36,30 +36,67 @@ def test_qwen_parameter_count_matches_the_architecture():
     assert V * h + L * per_layer + h == plan.QWEN25_05B.n_params
 
 
-# Two regimes: a small batch, where AdamW's update is the larger transient, and a larger one,
-# where activations and logits are (leaving either of those terms out misses it by 17-27%).
-@pytest.mark.parametrize("prompts, group, prompt_len, completion_len", [(1, 4, 64, 16), (3, 8, 128, 40)])
-def test_memory_plan_within_15_percent_of_the_measured_cpu_peak(prompts, group, prompt_len, completion_len):
-    out = subprocess.run([sys.executable, str(PROBE), str(prompts), str(group), str(prompt_len),
-                          str(completion_len)], capture_output=True, text=True, timeout=600, check=True, env=CPU_ONLY)
+# The full-size probe takes minutes at the larger shapes, so those peaks are measured by
+# benchmarks/memory_peaks.py and stored; the smallest shape is measured live here, so a change in
+# what the probe measures (torch, the allocator) still shows up in every test run.
+STORED_PEAKS = Path(__file__).resolve().parents[1] / "benchmarks" / "memory_peaks.json"
+
+
+def _stored_peak(prompts, group, prompt_len, completion_len, lora_rank=0) -> float:
+    shape = dict(prompts=prompts, group_size=group, prompt_len=prompt_len,
+                 completion_len=completion_len, lora_rank=lora_rank)
+    rows = json.loads(STORED_PEAKS.read_text())["peaks"]
+    found = [r["peak_gib"] for r in rows if {k: r[k] for k in shape} == shape]
+    assert found, f"{shape} is not in {STORED_PEAKS.name}: run python benchmarks/memory_peaks.py"
+    return found[0] * plan.GiB
+
+
+def _predicted(prompts, group, prompt_len, completion_len, lora_rank=0) -> float:
+    cfg = _cfg(prompts_per_step=prompts, group_size=group, lora_rank=lora_rank)
+    return plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, prompt_len, completion_len,
+                                            device=plan.CPU_PROBE))
+
+
+def test_memory_plan_within_15_percent_of_a_cpu_peak_measured_now():
+    """A small batch, where AdamW's update is the larger transient, measured in this run."""
+    shape = (1, 4, 64, 16)
+    out = subprocess.run([sys.executable, str(PROBE), *map(str, shape)], capture_output=True,
+                         text=True, timeout=600, check=True, env=CPU_ONLY)
     measured = json.loads(out.stdout.strip().splitlines()[-1])["peak_gib"] * plan.GiB
-    cfg = _cfg(prompts_per_step=prompts, group_size=group)
-    predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, prompt_len, completion_len,
-                                                 device=plan.CPU_PROBE))
+    predicted = _predicted(*shape)
     assert abs(predicted - measured) / measured < 0.15, (predicted / plan.GiB, measured / plan.GiB)
 
 
-def test_lora_memory_plan_within_25_percent_of_the_measured_cpu_peak():
-    """LoRA (rank 16) at the larger shape. The estimate is rougher here (measured 10.78 GiB,
-    planned 8.53): under full fine-tuning part of the transient is covered by gradient memory
-    that is counted as persistent but not yet allocated at the peak; under LoRA nothing covers
-    it. The bound is wider to say so; the plan stays a guide, not a guarantee, for LoRA."""
-    out = subprocess.run([sys.executable, str(PROBE), "3", "8", "128", "40", "16"],
-                         capture_output=True, text=True, timeout=600, check=True, env=CPU_ONLY)
-    measured = json.loads(out.stdout.strip().splitlines()[-1])["peak_gib"] * plan.GiB
-    cfg = _cfg(prompts_per_step=3, group_size=8, lora_rank=16)
-    predicted = plan.peak_bytes(plan.memory_plan(plan.QWEN25_05B, cfg, 128, 40, device=plan.CPU_PROBE))
+# Two regimes: the small batch above and a larger one, where activations and logits are the
+# larger transient (leaving either of those terms out misses it by 17-27%).
+@pytest.mark.parametrize("shape", [(1, 4, 64, 16), (3, 8, 128, 40)])
+def test_memory_plan_within_15_percent_of_the_stored_cpu_peaks(shape):
+    measured, predicted = _stored_peak(*shape), _predicted(*shape)
+    assert abs(predicted - measured) / measured < 0.15, (predicted / plan.GiB, measured / plan.GiB)
+
+
+def test_lora_memory_plan_within_25_percent_of_the_stored_cpu_peak():
+    """LoRA (rank 16) at the larger shape. The peak varies more between machines here (planned
+    8.53 GiB; one earlier machine measured 10.78, the stored peak is in
+    benchmarks/memory_peaks.json): under
+    full fine-tuning part of the transient is covered by gradient memory that is counted as
+    persistent but not yet allocated at the peak; under LoRA nothing covers it, so the peak
+    depends more on when the allocator reuses memory. The bound is wider to say so; the plan
+    stays a guide, not a guarantee, for LoRA."""
+    shape = (3, 8, 128, 40, 16)
+    measured, predicted = _stored_peak(*shape), _predicted(*shape)
     assert abs(predicted - measured) / measured < 0.25, (predicted / plan.GiB, measured / plan.GiB)
+
+
+def test_the_stored_peaks_are_the_shapes_the_benchmark_measures():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("memory_peaks", STORED_PEAKS.with_suffix(".py"))
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    rows = json.loads(STORED_PEAKS.read_text())["peaks"]
+    stored = [(r["prompts"], r["group_size"], r["prompt_len"], r["completion_len"], r["lora_rank"])
+              for r in rows]
+    assert stored == bench.SHAPES and all(r["peak_gib"] > 0 for r in rows)
 
 
 def test_memory_plan_terms_respond_to_the_options():

@@ -168,3 +168,34 @@ def test_sampled_passes_refuses_what_the_log_cannot_count(tmp_path):
         ablation.sampled_passes_table([a, b], ["a", "b"])
     with pytest.raises(ValueError, match="1 labels for 2 runs"):
         ablation.sampled_passes_table([a, a], ["a"])
+
+
+@pytest.mark.parametrize("values", [
+    [((0.7, 1.0, 0.0), (0.1, 0.1, 0.0)), ((0.8, 0.9, 0.5), (0.2, 0.3, 0.0)),
+     ((0.4, 0.5, 0.1), (0.4, 0.4, 0.3))],
+    [((0.9, 1.0, 0.7), (0.0, 0.0, 0.0)), ((0.3, 0.4, 0.0), (0.6, 0.7, 0.2))],
+])
+def test_paired_arms_lists_both_arms_per_seed_and_pairs_a_minus_b(tmp_path, values):
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    a = [fake_run(tmp_path / "a", 20 + i, *x, ["p 1", "q 2"], [0]) for i, (x, _) in enumerate(values)]
+    b = [fake_run(tmp_path / "b", 20 + i, *y, ["r 3"], [0]) for i, (_, y) in enumerate(values)]
+    lines = ablation.paired_arms(a, b, ("fp32", "bf16")).splitlines()
+    assert lines[0].startswith("| seed | fp32: both") and "| bf16: both |" in lines[0]
+    for i, (x, y) in enumerate(values):
+        cells = [c.strip() for c in lines[2 + i].strip("|").split("|")]
+        assert cells == [str(20 + i), *(f"{v:.1%}" for v in x), "2", "2.00", *(f"{v:.1%}" for v in y), "1", "2.00"]
+    verdicts = lines[2 + len(values) + 1:]
+    for line, k, what in zip(verdicts, (0, 2), ("both constraints", "two-digit targets")):
+        expected = stats.paired([x[k] for x, _ in values], [y[k] for _, y in values]).verdict("{:+.1%}")
+        assert line == f"- fp32 minus bf16, {what}: {expected}"
+    assert len(verdicts) == 2
+
+
+def test_paired_arms_refuses_arms_on_different_seeds(tmp_path):
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    a = [fake_run(tmp_path / "a", s, 0.5, 0.5, 0.0, ["x"], [0]) for s in (1, 2)]
+    b = [fake_run(tmp_path / "b", s, 0.5, 0.5, 0.0, ["x"], [0]) for s in (2, 1)]
+    with pytest.raises(ValueError, match="same seeds"):
+        ablation.paired_arms(a, b, ("a", "b"))
+    with pytest.raises(ValueError, match="at least 2"):
+        ablation.paired_arms(a[:1], a[:1], ("a", "b"))

@@ -346,6 +346,50 @@ def test_several_updates_with_a_bf16_sampler_take_pi_old_from_the_trainer():
     assert metrics["clip_fraction"] == 0.0
 
 
+@pytest.mark.parametrize("mode, updates", [("token_truncate", 1), ("sequence_mask", 2)])
+def test_the_mismatch_correction_weights_the_bf16_samplers_tokens(mode, updates, monkeypatch):
+    # The weights are pi_trainer / pi_sampler on the sampled tokens: the trainer's side is its
+    # first forward of the batch (update 0, kept for every update), the sampler's the rollout's
+    # own log-probs, in that order; the step's mean weight and gap are what they give.
+    from course_utils import mismatch
+    cfg = load_config("smoke", precision="bf16", device="cpu", is_correction=mode, is_clip_max=1.5,
+                      updates_per_batch=updates)
+    policy = train.setup(cfg)
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    seen, forwards, rollouts = [], [], []
+    real, real_forward, real_rollout = mismatch.importance_weights, train.completion_logprobs, train.rollout
+    monkeypatch.setattr(train.mismatch, "importance_weights",
+                        lambda *a, **k: seen.append(a) or real(*a, **k))
+    monkeypatch.setattr(train, "completion_logprobs",
+                        lambda *a, **k: forwards.append(real_forward(*a, **k)) or forwards[-1])
+    monkeypatch.setattr(train, "rollout", lambda *a, **k: rollouts.append(real_rollout(*a, **k)) or rollouts[-1])
+    metrics = train.grpo_step(policy, prompts)
+    micro = cfg.grad_accum
+    assert len(seen) == micro * updates and len(rollouts) == 1
+    ro = rollouts[0]
+    n = ro.completion_ids.shape[0] // micro
+    for i, (trainer_lp, sampler_lp, mask, got_mode, clip) in enumerate(seen):
+        k = i % micro   # the micro-batch; update i // micro
+        assert (got_mode, clip) == (mode, 1.5)
+        assert torch.equal(trainer_lp, forwards[k][0].detach())          # update 0's forward
+        assert torch.equal(sampler_lp, ro.logprobs[k * n:(k + 1) * n])   # the sampler's, second
+    assert not torch.equal(seen[0][0] * seen[0][2], seen[0][1] * seen[0][2])   # a real gap
+    weights = torch.cat([real(*a) for a in seen[:micro]])
+    masks = torch.cat([a[2] for a in seen[:micro]])
+    gaps = torch.cat([(a[0] - a[1]).abs() * a[2] for a in seen[:micro]])
+    assert metrics["is_weight_mean"] == pytest.approx(float((weights * masks).sum() / masks.sum()), rel=1e-5)
+    assert metrics["sampler_gap_abs"] == pytest.approx(float(gaps.sum() / masks.sum()), rel=1e-5)
+
+
+def test_without_the_correction_the_bf16_step_logs_the_gap_and_no_weights():
+    cfg = load_config("smoke", precision="bf16", device="cpu")
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    metrics = train.grpo_step(train.setup(cfg), prompts)
+    assert "is_weight_mean" not in metrics and metrics["sampler_gap_abs"] > 0
+    fp32 = train.grpo_step(train.setup(load_config("smoke", device="cpu")), prompts)
+    assert "is_weight_mean" not in fp32 and "sampler_gap_abs" not in fp32
+
+
 def test_an_apple_gpu_is_not_taken_for_a_cpu(monkeypatch):
     # accelerate picks MPS when it is there, so neither the CPU's bf16 autocast nor its bf16
     # sampler may be used then; asking for the CPU is the CPU everywhere

@@ -107,12 +107,22 @@ def test_every_presets_precision_reaches_trl(preset):
     ("kl_schedule", "reward_aware", "kl_schedule='reward_aware'"),
     ("entropy_bonus", "inverse_variance", "entropy_bonus='inverse_variance'"),
     ("target_sampling", "prioritized", "target_sampling='prioritized'"),
+    ("is_correction", "sequence_truncate", "is_correction='sequence_truncate'"),
 ])
 def test_options_trl_cannot_express_are_named(option, value, words):
     extra = dict(advantage_scale="batch") if option == "advantage_center" else {}
     cfg = Config.from_dict({**PRESETS["cpu"], option: value, **extra})
     _, left_out = trl_mapping.grpo_config_kwargs(cfg)
     assert len(left_out) == 1 and left_out[0].startswith(words)
+
+
+@pytest.mark.parametrize("mode, clip_max", [("none", 3.0), ("token_truncate", 2.0), ("sequence_mask", 5.0)])
+def test_the_mismatch_correction_reaches_trls_vllm_flags(mode, clip_max):
+    cfg = Config.from_dict({**PRESETS["cpu"], "is_correction": mode, "is_clip_max": clip_max})
+    args = build(trl_mapping.grpo_config_kwargs(cfg)[0])
+    assert args.vllm_importance_sampling_correction is (mode != "none")
+    assert args.vllm_importance_sampling_mode == ("sequence_mask" if mode == "none" else mode)
+    assert args.vllm_importance_sampling_clip_max == clip_max
 
 
 def test_the_curriculum_is_named_beside_the_prioritized_sampling_it_needs():

@@ -851,7 +851,8 @@ for key, value in mine.items():
 # tuning ones is equally likely, and one puts them all on top). Two causes are mixed in that gap,
 # and these runs cannot separate them: the winner's curse, and the machine, since the fresh
 # runs ran on a different CPU, whose matrix kernels change the arithmetic and so, as section 6.3
-# showed, the path a sampled run takes.
+# showed, the path a sampled run takes (section 6.7 measures how far the precision alone moves
+# one seed's run: most of the range, in either direction).
 #
 # Of the fresh seeds, one did what two of the
 # three tuning seeds did: a template that passes every one-digit target
@@ -1086,6 +1087,88 @@ else:
 # pair. Make the digit credit depend on the length, so that a reply far too short to pass is not
 # the cheap way off the cap. And since both two-digit answers are one fixed number, keep
 # exploration alive after the first number that scores is found.
+
+# %% [markdown]
+# ### 6.7 One seed, two precisions: how far the arithmetic moves a run
+#
+# Sections 6.5 and 6.6 each left the precision mixed into a comparison: on a CPU with bf16
+# matrix units `--precision auto` trains in bf16, elsewhere in fp32, and runs from both kinds of
+# machine sit side by side above. In bf16 a bf16 copy of the policy samples the completions and
+# the fp32 policy scores them under bf16 autocast, so the step trains on tokens drawn from a
+# distribution q slightly different from the trainer's pi_theta: the training-inference mismatch
+# of lesson 4, section 6. With one update per batch the ratio is forced to 1 and nothing
+# corrects it, so a bf16 step is REINFORCE on slightly off-policy samples. Is that what makes the
+# bf16 runs fail?
+#
+# The design isolates the precision: section 6.6's recipe with the overlong punishment, frozen,
+# on seeds 16, 17, 18 and 19, once in fp32 and once in bf16, one run after the other on
+# one machine, nothing else changed. The build checks that the runs of a pair differ in
+# `precision` alone and record the same CPU capability (torch reports
+# AVX512). One caveat on the design: seed 16's bf16 run came first, as one
+# more run of section 6.6's probe, and its failure is what prompted the question; its fp32 twin
+# and the other seeds' pairs were run for this section. Held out, greedy, with each run's entropy
+# per token over its last 5 logged steps, then fp32 minus bf16 paired by seed (`stats.paired`):
+#
+# | seed | fp32: both | fp32: one-digit | fp32: two-digit | fp32: distinct | fp32: entropy, last 5 steps | bf16: both | bf16: one-digit | bf16: two-digit | bf16: distinct | bf16: entropy, last 5 steps |
+# |---|---|---|---|---|---|---|---|---|---|---|
+# | 16 | 71.9% | 100.0% | 0.0% | 8 | 1.62 | 7.8% | 10.9% | 0.0% | 43 | 3.13 |
+# | 17 | 9.4% | 13.6% | 0.0% | 45 | 2.07 | 68.8% | 100.0% | 0.0% | 8 | 0.44 |
+# | 18 | 9.4% | 15.0% | 0.0% | 3 | 0.37 | 0.0% | 0.0% | 0.0% | 1 | 0.75 |
+# | 19 | 10.9% | 0.0% | 35.0% | 9 | 0.25 | 68.8% | 100.0% | 0.0% | 8 | 0.37 |
+#
+# - fp32 minus bf16, both constraints: per-seed differences [+64.1%, -59.4%, +9.4%, -57.8%], mean -10.9%, 95% t-interval [-105.4%, +83.6%] (3 df), sign-flip p = 1 (its smallest possible with 4 seeds: 0.125); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 123.6% at 80% power if the true spread were the observed one, itself a rough estimate from 3 df)
+# - fp32 minus bf16, two-digit targets: per-seed differences [+0.0%, +0.0%, +0.0%, +35.0%], mean +8.7%, 95% t-interval [-19.1%, +36.6%] (3 df), sign-flip p = 1 (its smallest possible with 1 of 4 seeds differing: 1); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 36.4% at 80% power if the true spread were the observed one, itself a rough estimate from 3 df)
+#
+# **The runs of a seed ended 47.7 percentage points apart on
+# average** (9 to 64). Of the
+# eight runs, three found the main job's kind of
+# template, a frame that passes every one-digit target held out, and passed
+# 68.8% to 71.9% of the prompts. The
+# others passed at most 10.9%, and none of them more than
+# 15.0% of its one-digit targets. Two-digit targets stay unsolved:
+# one of the runs passed any held out (at most
+# 35.0% of them), and only the prompts of one target sum, as a single
+# fixed number in its reply would, as in section 6.6's runs. Counting seeds, the template came with fp32 alone
+# on one and with bf16 alone on two, so the
+# precision has no direction here: an exact sign test on those discordant seeds gives p =
+# 1, and the t-interval under the table rests on
+# three degrees of freedom of outcomes that are either a template or a
+# dead end, so its width only says the seeds are too few.
+#
+# What the pairs do show is how little it takes to move a run. The runs of a pair share the
+# seed, the held-out prompts and every setting; only the rounding differs (bf16 keeps far fewer significant
+# digits than fp32). Their sampled completions differ from the first
+# step, the prioritized sampler then draws different training prompts for each, and from there
+# they are close to two independent draws of the recipe. So a pair measures the spread of one
+# run of this recipe, not an effect of the precision: the lesson of section 6.3 (changing the
+# kernels changed a sampled run's path) with its size measured, and the reason neither
+# section 6.5 nor section 6.6 could blame the machine or the precision for a gap. One run per seed cannot tell a
+# recipe's effect from the path the arithmetic picked.
+#
+# How large the mismatch is. The bf16 runs log the mean absolute gap between the trainer's and
+# the sampler's log-probabilities of the sampled tokens (`sampler_gap_abs` in `metrics.jsonl`,
+# logged by runs made after it was added: three of these): 0.023
+# nats per token averaged over each run, against 0.046 that
+# `benchmarks/logprob_gap.py` measured on the untrained policy. Small per token, but summed over
+# a reply it is the log of the importance weight the update ignores, whose spread that
+# benchmark puts at 0.32 (weights from 0.73 to 1.38
+# within one standard deviation). Whether that biases learning is a question these pairs cannot answer,
+# because the path dominates. The course's loop can correct it the way TRL corrects vLLM's
+# samples: `--is_correction` weights each token's surrogate by pi_trainer / pi_sampler, per
+# token or per sequence, truncated at `--is_clip_max` or masked above it
+# (`mismatch.importance_weights`, lesson 4's function; `tests/test_losses.py` checks the
+# weighted loss and its gradient by hand, `tests/test_train.py` that the bf16 step applies it).
+# It is off by default, and no run here measured it.
+#
+# What this changes. Nothing in the presets: the main job runs in fp32 everywhere, and `auto`
+# stays the faster choice where bf16 units exist (782 s per fp32 run
+# against 569 s per bf16 run here, 1.37x,
+# wall time of whole runs whose replies differ in length, not a benchmark). What it changes is
+# how to read any comparison of single runs, here and in papers: a difference between runs
+# is a draw from a distribution whose spread, on this task, reached 64
+# percentage points within one seed. A recipe
+# worth reporting has to make the good path the likely one, and that is measured over many
+# seeds, not one.
 
 # %% [markdown]
 # ## 7. Next steps: the same rewards in TRL

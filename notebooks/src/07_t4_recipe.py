@@ -660,7 +660,8 @@ for key, value in mine.items():
 # tuning ones is equally likely, and one puts them all on top). Two causes are mixed in that gap,
 # and these runs cannot separate them: the winner's curse, and the machine, since the fresh
 # runs ran on a different CPU, whose matrix kernels change the arithmetic and so, as section 6.3
-# showed, the path a sampled run takes.
+# showed, the path a sampled run takes (section 6.7 measures how far the precision alone moves
+# one seed's run: most of the range, in either direction).
 #
 # Of the fresh seeds, {{fig:fresh.template_seeds}} did what {{fig:fresh.tuning_template_seeds}} of the
 # {{fig:fresh.tuning_seeds}} tuning seeds did: a template that passes every one-digit target
@@ -838,6 +839,80 @@ else:
 # pair. Make the digit credit depend on the length, so that a reply far too short to pass is not
 # the cheap way off the cap. And since both two-digit answers are one fixed number, keep
 # exploration alive after the first number that scores is found.
+
+# %% [markdown]
+# ### 6.7 One seed, two precisions: how far the arithmetic moves a run
+#
+# Sections 6.5 and 6.6 each left the precision mixed into a comparison: on a CPU with bf16
+# matrix units `--precision auto` trains in bf16, elsewhere in fp32, and runs from both kinds of
+# machine sit side by side above. In bf16 a bf16 copy of the policy samples the completions and
+# the fp32 policy scores them under bf16 autocast, so the step trains on tokens drawn from a
+# distribution q slightly different from the trainer's pi_theta: the training-inference mismatch
+# of lesson 4, section 6. With one update per batch the ratio is forced to 1 and nothing
+# corrects it, so a bf16 step is REINFORCE on slightly off-policy samples. Is that what makes the
+# bf16 runs fail?
+#
+# The design isolates the precision: section 6.6's recipe with the overlong punishment, frozen,
+# on seeds {{fig:precision.seed_list}}, once in fp32 and once in bf16, one run after the other on
+# one machine, nothing else changed. The build checks that the runs of a pair differ in
+# `precision` alone and record the same CPU capability (torch reports
+# {{fig:precision.capability}}). One caveat on the design: seed 16's bf16 run came first, as one
+# more run of section 6.6's probe, and its failure is what prompted the question; its fp32 twin
+# and the other seeds' pairs were run for this section. Held out, greedy, with each run's entropy
+# per token over its last {{fig:probes.window}} logged steps, then fp32 minus bf16 paired by seed (`stats.paired`):
+#
+# {{PRECISION_PAIRS}}
+#
+# **The runs of a seed ended {{fig:precision.abs_diff_mean}} percentage points apart on
+# average** ({{fig:precision.min_abs_diff}} to {{fig:precision.max_abs_diff}}). Of the
+# {{fig:precision.runs}} runs, {{fig:precision.template_runs}} found the main job's kind of
+# template, a frame that passes every one-digit target held out, and passed
+# {{fig:precision.template_pass_low}} to {{fig:precision.template_pass_high}} of the prompts. The
+# others passed at most {{fig:precision.other_pass_high}}, and none of them more than
+# {{fig:precision.other_one_high}} of its one-digit targets. Two-digit targets stay unsolved:
+# {{fig:precision.two_digit_runs}} of the runs passed any held out (at most
+# {{fig:precision.two_digit_best}} of them), and only the prompts of one target sum, as a single
+# fixed number in its reply would, as in section 6.6's runs. Counting seeds, the template came with fp32 alone
+# on {{fig:precision.only_fp32}} and with bf16 alone on {{fig:precision.only_bf16}}, so the
+# precision has no direction here: an exact sign test on those discordant seeds gives p =
+# {{fig:precision.template_sign_p}}, and the t-interval under the table rests on
+# {{fig:precision.paired_pass_df}} degrees of freedom of outcomes that are either a template or a
+# dead end, so its width only says the seeds are too few.
+#
+# What the pairs do show is how little it takes to move a run. The runs of a pair share the
+# seed, the held-out prompts and every setting; only the rounding differs (bf16 keeps far fewer significant
+# digits than fp32). Their sampled completions differ from the first
+# step, the prioritized sampler then draws different training prompts for each, and from there
+# they are close to two independent draws of the recipe. So a pair measures the spread of one
+# run of this recipe, not an effect of the precision: the lesson of section 6.3 (changing the
+# kernels changed a sampled run's path) with its size measured, and the reason neither
+# section 6.5 nor section 6.6 could blame the machine or the precision for a gap. One run per seed cannot tell a
+# recipe's effect from the path the arithmetic picked.
+#
+# How large the mismatch is. The bf16 runs log the mean absolute gap between the trainer's and
+# the sampler's log-probabilities of the sampled tokens (`sampler_gap_abs` in `metrics.jsonl`,
+# logged by runs made after it was added: {{fig:precision.gap_runs}} of these): {{fig:precision.gap_mean}}
+# nats per token averaged over each run, against {{fig:precision.gap_untrained}} that
+# `benchmarks/logprob_gap.py` measured on the untrained policy. Small per token, but summed over
+# a reply it is the log of the importance weight the update ignores, whose spread that
+# benchmark puts at {{fig:precision.sequence_weight_sd}} (weights from {{fig:precision.weight_low}} to {{fig:precision.weight_high}}
+# within one standard deviation). Whether that biases learning is a question these pairs cannot answer,
+# because the path dominates. The course's loop can correct it the way TRL corrects vLLM's
+# samples: `--is_correction` weights each token's surrogate by pi_trainer / pi_sampler, per
+# token or per sequence, truncated at `--is_clip_max` or masked above it
+# (`mismatch.importance_weights`, lesson 4's function; `tests/test_losses.py` checks the
+# weighted loss and its gradient by hand, `tests/test_train.py` that the bf16 step applies it).
+# It is off by default, and no run here measured it.
+#
+# What this changes. Nothing in the presets: the main job runs in fp32 everywhere, and `auto`
+# stays the faster choice where bf16 units exist ({{fig:precision.fp32_seconds}} s per fp32 run
+# against {{fig:precision.bf16_seconds}} s per bf16 run here, {{fig:precision.seconds_ratio}}x,
+# wall time of whole runs whose replies differ in length, not a benchmark). What it changes is
+# how to read any comparison of single runs, here and in papers: a difference between runs
+# is a draw from a distribution whose spread, on this task, reached {{fig:precision.max_abs_diff}}
+# percentage points within one seed. A recipe
+# worth reporting has to make the good path the likely one, and that is measured over many
+# seeds, not one.
 
 # %% [markdown]
 # ## 7. Next steps: the same rewards in TRL
