@@ -378,8 +378,8 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     # runs under autocast), pi_old is scored by the trainer itself: the first update's
     # log-probs (taken before any weight moves), so the ratio measures the policy's change and
     # not the two networks' rounding (the sampler-trainer gap: benchmarks/RESULTS.md).
-    trainer_old: dict[int, torch.Tensor] = {}
-    trainer_first: dict[int, torch.Tensor] = {}   # the same, for the mismatch's correction
+    # (also the trainer's side of the sampler-trainer gap and of the mismatch's correction)
+    trainer_first: dict[int, torch.Tensor] = {}
     skipped_before = policy.counters["nonfinite_skipped"]
     for _ in range(cfg.updates_per_batch):
         policy.optimizer.zero_grad(set_to_none=True)
@@ -402,7 +402,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                     # (with the correction on, pi_old is the trainer's, as in TRL, so the
                     # weights below carry the mismatch once, not the ratio as well)
                 else:
-                    old = trainer_old.setdefault(start, logprobs.detach())   # kept from update 0
+                    old = trainer_first.setdefault(start, logprobs.detach())   # kept from update 0
                 weights, first = None, None
                 if cpu_bf16(cfg) or cfg.is_correction != "none":   # two numerics, or a correction
                     # the trainer's log-probs before any weight moves (update 0), as TRL takes

@@ -569,78 +569,64 @@ def precision_figures() -> dict[str, str]:
     fp32, bf16 = precision_pair_runs()
     if len(fp32) < 2:
         raise ValueError("lesson 7, 6.7 needs at least two stored pairs in results/precision-pairs")
-    after = lambda run: _json(f"precision-pairs/{run.name}/summary.json")["after"]["greedy"]  # noqa: E731
-    entropy = lambda run: ablation.tail_mean(ablation.records(run), "entropy")  # noqa: E731
-    seconds = lambda run: _json(f"precision-pairs/{run.name}/summary.json")["seconds"]  # noqa: E731
-    seeds = [_json(f"precision-pairs/{run.name}/config.json")["seed"] for run in fp32]
-    figs = {"precision.seed_list": _seeds(seeds), "precision.pairs": _word(len(seeds)),
-            "precision.capability": _json(f"precision-pairs/{fp32[0].name}/summary.json")["cpu_capability"],
-            "precision.bf16_higher_entropy": _word(sum(entropy(b) > entropy(f) for f, b in zip(fp32, bf16))),
-            "precision.seconds_ratio": f"{statistics.mean(map(seconds, fp32)) / statistics.mean(map(seconds, bf16)):.2f}"}
-    for name, runs in (("fp32", fp32), ("bf16", bf16)):
-        figs[f"precision.{name}_entropy"] = f"{statistics.mean(map(entropy, runs)):.2f}"
-        figs[f"precision.{name}_seconds"] = f"{statistics.mean(map(seconds, runs)):.0f}"
-        for key, field in (("pass", "pass_both"), ("one", "pass_both_one_digit"), ("two", "pass_both_two_digit")):
-            values = [after(run)[field] for run in runs]
-            figs[f"precision.{name}_{key}_mean"] = f"{statistics.mean(values):.1%}"
-            figs[f"precision.{name}_{key}_worst"] = f"{min(values):.1%}"
-    # what 6.7 says: the precisions disagree in sign from seed to seed, no run passes a two-digit
-    # target, and each run either found a template that passes every one-digit target or not
-    diffs = [after(f)["pass_both"] - after(b)["pass_both"] for f, b in zip(fp32, bf16)]
+    runs = fp32 + bf16
+    summary = {run: _json(f"precision-pairs/{run.name}/summary.json") for run in runs}
+    after = {run: summary[run]["after"]["greedy"] for run in runs}
+    seconds = lambda arm: statistics.mean(summary[run]["seconds"] for run in arm)  # noqa: E731
+    # what 6.7 says: fp32 minus bf16 changes sign from seed to seed; a run that passes two-digit
+    # targets passes one target sum only; and the template (every one-digit target passed) came
+    # with fp32 alone on some seeds and with bf16 alone on others
+    diffs = [after[f]["pass_both"] - after[b]["pass_both"] for f, b in zip(fp32, bf16)]
     if not (any(d > 0 for d in diffs) and any(d < 0 for d in diffs)):
         raise ValueError(f"lesson 7, 6.7 says the sign of fp32 minus bf16 changes from seed to seed: {diffs}")
-    two_digit_runs = [r for r in fp32 + bf16 if after(r)["pass_both_two_digit"] > 0]
-    for r in two_digit_runs:   # 6.7: each passes one target sum only, with one fixed number
-        sums = {x["digit_sum"] for x in after(r)["samples"] if x["target_digit_sum"] >= 10 and
+    two_digit_runs = [r for r in runs if after[r]["pass_both_two_digit"] > 0]
+    for r in two_digit_runs:
+        sums = {x["digit_sum"] for x in after[r]["samples"] if x["target_digit_sum"] >= 10 and
                 x["digit_sum"] == x["target_digit_sum"] and x["n_chars"] == x["target_chars"]}
         if len(sums) != 1:
             raise ValueError(f"lesson 7, 6.7 says {r.name} passes one two-digit target sum; it passes {sums}")
-    template = [r for r in fp32 + bf16 if after(r)["pass_both_one_digit"] == 1.0]
-    # the seeds on which one precision found the template and the other did not, each way: an
-    # exact two-sided sign test on those discordant pairs (McNemar's exact test)
+    template = [r for r in runs if after[r]["pass_both_one_digit"] == 1.0]
+    others = [r for r in runs if r not in template]
     only_fp32 = sum(f in template and b not in template for f, b in zip(fp32, bf16))
     only_bf16 = sum(b in template and f not in template for f, b in zip(fp32, bf16))
     if not (only_fp32 and only_bf16):
         raise ValueError(f"lesson 7, 6.7 says the template came with fp32 on some seeds and with bf16 on "
                          f"others; fp32 only on {only_fp32}, bf16 only on {only_bf16}")
-    discordant = only_fp32 + only_bf16
-    sign_p = min(1.0, 2 * sum(math.comb(discordant, k) for k in range(min(only_fp32, only_bf16) + 1))
-                 / 2 ** discordant)
-    others = [r for r in fp32 + bf16 if r not in template]
-    gaps = [ablation.records(r) for r in bf16]
-    gaps = [statistics.mean(x["sampler_gap_abs"] for x in steps) for steps in gaps
+    # the exact sign test on the discordant seeds (McNemar's exact test) is the sign-flip test
+    # on their +1 / -1 differences
+    template_p = stats.sign_flip_p_value([1.0] * only_fp32 + [-1.0] * only_bf16)
+    logged = [ablation.records(r) for r in bf16]
+    gaps = [statistics.mean(x["sampler_gap_abs"] for x in steps) for steps in logged
             if all("sampler_gap_abs" in x for x in steps)]
-    figs.update({"precision.abs_diff_mean": f"{100 * statistics.mean(abs(d) for d in diffs):.1f}",
-                 "precision.runs": _word(len(fp32 + bf16)),
-                 "precision.template_runs": _word(len(template)),
-                 "precision.template_pass_low": f"{min(after(r)['pass_both'] for r in template):.1%}",
-                 "precision.template_pass_high": f"{max(after(r)['pass_both'] for r in template):.1%}",
-                 "precision.other_pass_high": f"{max(after(r)['pass_both'] for r in others):.1%}",
-                 "precision.other_one_high": f"{max(after(r)['pass_both_one_digit'] for r in others):.1%}",
-                 "precision.two_digit_runs": _word(len(two_digit_runs)),
-                 "precision.two_digit_best": f"{max([after(r)['pass_both_two_digit'] for r in two_digit_runs] or [0]):.1%}",
-                 "precision.only_fp32": _word(only_fp32), "precision.only_bf16": _word(only_bf16),
-                 "precision.template_sign_p": f"{sign_p:.3g}",
-                 "precision.max_abs_diff": f"{100 * max(abs(d) for d in diffs):.0f}",
-                 "precision.min_abs_diff": f"{100 * min(abs(d) for d in diffs):.0f}",
-                 "precision.fp32_template_runs": _word(sum(r in template for r in fp32)),
-                 "precision.bf16_template_runs": _word(sum(r in template for r in bf16)),
-                 "precision.gap_runs": _word(len(gaps)),
-                 "precision.gap_mean": f"{statistics.mean(gaps):.3f}" if gaps else "not logged",
-                 # benchmarks/logprob_gap.py on the untrained policy (benchmarks/RESULTS.md)
-                 "precision.sequence_weight_sd": f"{json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['sequence log weight sum_t (trainer - sampler)']['sd']:.2f}",
-                 "precision.weight_low": f"{math.exp(-json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['sequence log weight sum_t (trainer - sampler)']['sd']):.2f}",
-                 "precision.weight_high": f"{math.exp(json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['sequence log weight sum_t (trainer - sampler)']['sd']):.2f}",
-                 "precision.gap_untrained": f"{json.loads((RESULTS.parent.parent / 'benchmarks' / 'logprob_gap.json').read_text())['trainer - sampler']['mean_abs']:.3f}"})
-    for key, field in (("pass", "pass_both"), ("two", "pass_both_two_digit")):
-        comparison = stats.paired([after(r)[field] for r in fp32], [after(r)[field] for r in bf16])
-        low, high = comparison.interval
-        figs.update({f"precision.paired_{key}_mean": f"{comparison.mean:+.1%}",
-                     f"precision.paired_{key}_low": f"{low:+.1%}", f"precision.paired_{key}_high": f"{high:+.1%}",
-                     f"precision.paired_{key}_p": f"{comparison.p_value:.3g}",
-                     f"precision.paired_{key}_floor": f"{comparison.p_floor:.3g}",
-                     f"precision.paired_{key}_df": _word(comparison.n - 1)})
-    return figs
+    # benchmarks/logprob_gap.py on the untrained policy (benchmarks/RESULTS.md)
+    untrained = json.loads((RESULTS.parents[1] / "benchmarks" / "logprob_gap.json").read_text())
+    weight_sd = untrained["sequence log weight sum_t (trainer - sampler)"]["sd"]
+    both = stats.paired([after[r]["pass_both"] for r in fp32], [after[r]["pass_both"] for r in bf16])
+    return {"precision.seed_list": _seeds([_json(f"precision-pairs/{r.name}/config.json")["seed"] for r in fp32]),
+            "precision.capability": summary[fp32[0]]["cpu_capability"],
+            "precision.runs": _word(len(runs)),
+            "precision.abs_diff_mean": f"{100 * statistics.mean(abs(d) for d in diffs):.1f}",
+            "precision.max_abs_diff": f"{100 * max(abs(d) for d in diffs):.0f}",
+            "precision.min_abs_diff": f"{100 * min(abs(d) for d in diffs):.0f}",
+            "precision.template_runs": _word(len(template)),
+            "precision.template_pass_low": f"{min(after[r]['pass_both'] for r in template):.1%}",
+            "precision.template_pass_high": f"{max(after[r]['pass_both'] for r in template):.1%}",
+            "precision.other_pass_high": f"{max(after[r]['pass_both'] for r in others):.1%}",
+            "precision.other_one_high": f"{max(after[r]['pass_both_one_digit'] for r in others):.1%}",
+            "precision.two_digit_runs": _word(len(two_digit_runs)),
+            "precision.two_digit_best": f"{max([after[r]['pass_both_two_digit'] for r in two_digit_runs] or [0]):.1%}",
+            "precision.only_fp32": _word(only_fp32), "precision.only_bf16": _word(only_bf16),
+            "precision.template_sign_p": f"{template_p:.3g}",
+            "precision.paired_pass_df": _word(both.n - 1),
+            "precision.gap_runs": _word(len(gaps)),
+            "precision.gap_mean": f"{statistics.mean(gaps):.3f}" if gaps else "not logged",
+            "precision.gap_untrained": f"{untrained['trainer - sampler']['mean_abs']:.3f}",
+            "precision.sequence_weight_sd": f"{weight_sd:.2f}",
+            "precision.weight_low": f"{math.exp(-weight_sd):.2f}",
+            "precision.weight_high": f"{math.exp(weight_sd):.2f}",
+            "precision.fp32_seconds": f"{seconds(fp32):.0f}",
+            "precision.bf16_seconds": f"{seconds(bf16):.0f}",
+            "precision.seconds_ratio": f"{seconds(fp32) / seconds(bf16):.2f}"}
 
 
 def fresh_preset() -> dict:
