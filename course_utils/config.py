@@ -57,8 +57,9 @@ class Config:
                                "'binary', so a pass pays clearly more than a near miss; 'graded': the digit part in "
                                "whole units of the digit sum and 0 without digits, the length part half "
                                "in whole characters; 'counted': 'graded' with the digit part halved per "
-                               "digit too few to reach the target (rewards.py)",
-                        ("binary", "shaped", "sharp", "graded", "counted"))
+                               "digit too few to reach the target; 'gated': the digit part of 'counted' times the mean of 1 "
+                               "and its length part, so nothing without a digit (rewards.py)",
+                        ("binary", "shaped", "sharp", "graded", "counted", "gated"))
     # --- how much data -----------------------------------------------------------------------
     train_prompts: int = _f(1024, "number of distinct training prompts")
     eval_prompts: int = _f(100, "number of held-out prompts for before/after evaluation")

@@ -19,7 +19,7 @@ Where the targets come from: for an instruction-tuned model each prompt states i
 ``target_chars`` and ``target_digit_sum`` in the instruction (see ``data.build_prompt``); for a
 base model such as gpt2, which cannot read instructions, both are fixed by the config.
 
-Five rewards are provided (and two one-constraint metrics, ``length_reward`` and
+Six rewards are provided (and two one-constraint metrics, ``length_reward`` and
 ``digit_sum_reward``), all with TRL's reward-function signature
 ``f(prompts, completions, **kwargs) -> list[float]``; the targets arrive as per-completion
 lists in ``kwargs``, exactly as TRL passes extra dataset columns:
@@ -35,6 +35,9 @@ lists in ``kwargs``, exactly as TRL passes extra dataset columns:
   digit) and half in whole characters (``graded_score``);
 * ``counted_reward``: ``graded_reward`` with the digit credit halved for each digit a reply is
   short of the fewest that can reach the target (``counted_score``, lesson 7, section 6.4).
+* ``gated_reward``: ``counted_reward``'s digit credit times the mean of 1 and its length credit,
+  so against a positive target a reply without digits earns nothing and the length pays in
+  proportion to the digits (``gated_score``, lesson 7, section 6.8).
 
 Every partial credit is exactly 1.0 when ``binary_reward`` is, and below 1 otherwise.
 """
@@ -314,9 +317,14 @@ def counted_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -
     model does now and then. Digits that add up to S are never short (fewer than ceil(S/9)
     digits cannot reach S), so the score is 1 exactly when ``binary_reward`` is 1.
     """
-    short = max(0, digits_needed(target_digit_sum) - result.n_digits)
     return 0.5 * _graded_length_credit(result, target_chars) + \
-        0.5 * _unit_digit_credit(result, target_digit_sum) * 0.5 ** short
+        0.5 * _counted_digit_credit(result, target_digit_sum)
+
+
+def _counted_digit_credit(result: RuleCheck, target_digit_sum: int) -> float:
+    # the unit digit credit, halved per digit too few to reach the target
+    short = max(0, digits_needed(target_digit_sum) - result.n_digits)
+    return _unit_digit_credit(result, target_digit_sum) * 0.5 ** short
 
 
 def counted_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
@@ -325,8 +333,33 @@ def counted_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs)
     return _scored(counted_score, completions, kwargs)
 
 
+def gated_score(result: RuleCheck, target_chars: int, target_digit_sum: int) -> float:
+    """``counted_score``'s digit credit times the mean of 1 and its length credit, so the digits
+    come first:
+
+    gated = D * (1/2 + 1/2 * length credit),   D = digit credit * 2^-(digits short),
+
+    with the credits of ``counted_score``. Why: the counted credit pays the length half on its
+    own, so a policy can climb it with no digit at all, and one run of lesson 7, section 6.7 did,
+    ending on one 32-character sentence without a digit for every prompt. Gated, a reply whose
+    digits add up to 0 (none, or only zeros) earns nothing against a positive target, and the
+    length pays in proportion to D. Among replies whose digits are right the length still
+    ranks them, in (1/2, 1]. gated - counted = (length credit / 2) * (D - 1) <= 0, so gated is
+    never above counted, and it is 1 exactly when ``binary_reward`` is: D and the length credit
+    are 1 only when their constraints pass.
+    """
+    return _counted_digit_credit(result, target_digit_sum) * \
+        (0.5 + 0.5 * _graded_length_credit(result, target_chars))
+
+
+def gated_reward(prompts: Sequence[Any], completions: Sequence[Any], **kwargs) -> list[float]:
+    """``counted_reward``'s digit credit times the mean of 1 and its length credit: nothing
+    without digits against a positive target (``gated_score``)."""
+    return _scored(gated_score, completions, kwargs)
+
+
 REWARDS = {"binary": binary_reward, "shaped": shaped_reward, "sharp": sharp_reward,
-           "graded": graded_reward, "counted": counted_reward}
+           "graded": graded_reward, "counted": counted_reward, "gated": gated_reward}
 
 
 def get_reward_fn(name: str):

@@ -193,6 +193,18 @@ def precision_pairs_markdown() -> str:
     return ablation.paired_arms(*figures.precision_pair_runs(), ("fp32", "bf16"))
 
 
+def gated_pairs_markdown(stage: str) -> str:
+    """Lesson 7, 6.8: the gated credit against the counted one on the same seeds, paired."""
+    from course_utils import ablation
+    return ablation.paired_arms(*figures.gated_pair_runs(stage), ("gated", "counted"))
+
+
+def gated_by_target_markdown() -> str:
+    """Lesson 7, 6.8: what the gated runs on fresh seeds write per target digit sum."""
+    from course_utils import ablation
+    return ablation.completions_by_target(figures.gated_pair_runs("fresh")[0])
+
+
 def fill_markdown(text: str, key: str, content: str) -> str:
     """Replace a markdown line ``# {{KEY}}`` with several commented markdown lines."""
     block = "\n".join(f"# {line}" if line else "#" for line in content.splitlines())
@@ -286,6 +298,10 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "CAP_PAIRED", cap_paired_markdown())
     if "{{PRECISION_PAIRS}}" in text:
         text = fill_markdown(text, "PRECISION_PAIRS", precision_pairs_markdown())
+    if "{{GATED_TUNING}}" in text:
+        text = fill_markdown(text, "GATED_TUNING", gated_pairs_markdown("tuning"))
+        text = fill_markdown(text, "GATED_FRESH", gated_pairs_markdown("fresh"))
+        text = fill_markdown(text, "GATED_BY_TARGET", gated_by_target_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
@@ -359,7 +375,10 @@ README_RESULTS = {"cpu": lambda: demoted((RESULTS / "cpu" / "report.md").read_te
                   "timings": timings_markdown, "trl": trl_markdown,
                   "fresh": lambda: fresh_markdown().strip(),
                   "fresh-vs-preset": lambda: fresh_vs_preset_markdown().strip(),
-                  "precision": lambda: precision_pairs_markdown().strip()}
+                  "precision": lambda: precision_pairs_markdown().strip(),
+                  "gated": lambda: ("**Screen, tuning seeds** (the counted arm is 6.7's bf16 runs):\n\n"
+                                    + gated_pairs_markdown("tuning") + "\n**Frozen, fresh seeds:**\n\n"
+                                    + gated_pairs_markdown("fresh")).strip()}
 
 
 # A figure in the README's prose: <!-- fig: NAME -->VALUE<!-- end fig -->, VALUE rendered from

@@ -3,6 +3,7 @@ arithmetic, filled in by ``notebooks/build.py`` from ``{{fig:NAME}}`` (``noteboo
 or a cell's printed output. A number typed into the prose, in digits or as a count spelled out
 ("three seeds"), is a figure that can go stale, so this test fails on one, unless it is a constant
 of the setup listed below with its reason; a wall time typed into a lesson or the README too."""
+import json
 import re
 import sys
 from pathlib import Path
@@ -445,3 +446,140 @@ def test_the_precision_figures_refuse_prose_the_stored_runs_stop_supporting(monk
     monkeypatch.setattr(figures, "_json", lifted)
     with pytest.raises(ValueError, match="changes from seed to seed"):
         figures.precision_figures()
+
+
+@pytest.mark.parametrize("files, changes, mistake", [
+    (["gated/tuning/gated-seed16/config.json"], {"lr": 1e-4}, "reward='gated' and nothing else"),
+    (["gated/tuning/gated-seed16/config.json"], {"reward": "counted"}, "reward='gated' and nothing else"),
+    (["gated/tuning/gated-seed16/config.json"], {"seed": 17}, "reward='gated' and nothing else"),
+    (["precision-pairs/punished-bf16-seed16/config.json"], {"kl_coef": 0.0}, "6.6's punished recipe on seed 16"),
+    # both runs of a pair on another seed than their folders say
+    (["gated/fresh/gated-seed21/config.json", "gated/fresh/punished-seed21/config.json"], {"seed": 22},
+     "6.6's punished recipe on seed 21"),
+    # the control and its gated twin off the recipe the same way
+    (["gated/fresh/gated-seed21/config.json", "gated/fresh/punished-seed21/config.json"],
+     {"overlong_penalty": 0.0}, "6.6's punished recipe on seed 21"),
+    (["gated/fresh/gated-seed21/config.json"], {"is_correction": "token_mask"}, "reward='gated' and nothing"),
+    (["gated/fresh/gated-seed21/summary.json"], {"precision": "fp32"}, "both ran in bf16 on one CPU"),
+    (["gated/fresh/punished-seed21/summary.json"], {"cpu_capability": "AVX2"}, "both ran in bf16 on one CPU"),
+])
+def test_the_gated_figures_refuse_a_pair_that_is_not_what_6_8_says(monkeypatch, files, changes, mistake):
+    figures.gated_figures()  # the stored files pass
+    real = figures._json
+    monkeypatch.setattr(figures, "_json", lambda rel: {**real(rel), **changes} if rel in files else real(rel))
+    with pytest.raises(ValueError, match=mistake):
+        figures.gated_figures()
+
+
+def test_dead_end_names_how_a_run_without_a_template_ended():
+    def after(one, length, digits):
+        return dict(pass_both_one_digit=one, pass_length=length, pass_digits=digits)
+    assert figures.dead_end(after(1.0, 0.7, 0.7)) is None
+    assert figures.dead_end(after(0.98, 0.8, 0.8)) is None
+    assert figures.dead_end(after(0.85, 0.9, 0.8)) == "length"
+    assert figures.dead_end(after(0.0, 1.0, 0.0)) == "length"
+    assert figures.dead_end(after(0.15, 0.92, 0.17)) == "length"
+    assert figures.dead_end(after(0.1, 0.08, 0.75)) == "digits"
+    assert figures.dead_end(after(0.1, 0.5, 0.5)) == "tie"
+
+
+def test_the_gated_figures_refuse_a_seed_with_a_run_missing(monkeypatch):
+    for stage, seeds in (("tuning", figures.GATED_TUNING_SEEDS), ("fresh", figures.GATED_FRESH_SEEDS)):
+        gated, counted = figures.gated_pair_runs(stage)
+        assert [json.loads((r / "config.json").read_text())["seed"] for r in gated] == list(seeds)
+    monkeypatch.setattr(figures, "GATED_FRESH_SEEDS", (*figures.GATED_FRESH_SEEDS, 99))
+    with pytest.raises(ValueError, match="missing .*gated-seed99"):
+        figures.gated_figures()
+    with pytest.raises(ValueError, match="'tuning' or 'fresh'"):
+        figures.gated_pair_runs("probe")
+
+
+def test_the_gated_figures_refuse_prose_the_dead_end_stops_supporting(monkeypatch):
+    """6.8 says the length-first run almost never sampled the right digit sum once it had learned
+    the length (at most 1% of its sampled replies)."""
+    rel = "precision-pairs/punished-bf16-seed18"
+    steps = [json.loads(line) for line in (figures.RESULTS / rel / "metrics.jsonl").read_text().splitlines()]
+    from course_utils import ablation
+    real = ablation.records
+    monkeypatch.setattr(ablation, "records", lambda run: [{**x, "pass_digits": 0.03125} for x in steps]
+                        if str(run).endswith(rel) else real(run))
+    with pytest.raises(ValueError, match="almost never sampled the right digit sum"):
+        figures.gated_figures()
+
+
+def test_no_stored_run_falls_near_the_template_line():
+    """6.8's template runs are those at or above figures.TEMPLATE_ONE_DIGIT of one-digit passes;
+    a run near the line would make the count depend on the threshold chosen."""
+    runs = sum(figures.precision_pair_runs(), []) + [r for stage in ("tuning", "fresh")
+                                                     for arm in figures.gated_pair_runs(stage) for r in arm]
+    for run in runs:
+        one = json.loads((run / "summary.json").read_text())["after"]["greedy"]["pass_both_one_digit"]
+        assert not 0.5 <= one < figures.TEMPLATE_ONE_DIGIT, (run.name, one)
+
+
+def _lifted_after(real, runs, **after):
+    """figures._json with the held-out greedy results of ``runs`` (folder names) overwritten."""
+    def lifted(rel):
+        data = real(rel)
+        if rel.endswith("summary.json") and rel.split("/")[-2] in runs:
+            data = {**data, "after": {**data["after"], "greedy": {**data["after"]["greedy"], **after}}}
+        return data
+    return lifted
+
+
+def test_the_gated_figures_refuse_a_verdict_the_fresh_seeds_stop_supporting(monkeypatch):
+    """6.8's verdict: no difference detected on fresh seeds, no recipe met the bar, the template
+    did not become likely with the gate, no gated run ended on replies without a digit, and the
+    gated runs that ended length first wrote one sentence with a fixed number."""
+    real = figures._json
+    gated_fresh = {r.name for r in figures.gated_pair_runs("fresh")[0]}
+    # every fresh gated run a template run that passes 90%: a difference, and the template likely
+    monkeypatch.setattr(figures, "_json", _lifted_after(real, gated_fresh, pass_both=0.9, pass_both_one_digit=1.0))
+    with pytest.raises(ValueError, match="detect no difference"):
+        figures.gated_figures()
+    # four of five template runs (seed 24's stays the run that ended on a fixed number)
+    monkeypatch.setattr(figures, "_json", _lifted_after(real, gated_fresh - {"gated-seed24"}, pass_both_one_digit=1.0))
+    with pytest.raises(ValueError, match="template did not become the likely path"):
+        figures.gated_figures()
+    # both arms at 90% on every fresh seed: no difference, and the bar met
+    everyone = gated_fresh | {r.name for r in figures.gated_pair_runs("fresh")[1]}
+    monkeypatch.setattr(figures, "_json", _lifted_after(real, everyone, pass_both=0.9))
+    with pytest.raises(ValueError, match="neither recipe met the bar"):
+        figures.gated_figures()
+    # each gated run 1 point above its control: a difference the fresh seeds detect
+    counted = {r.name: real(f"gated/fresh/{r.name}/summary.json")["after"]["greedy"]["pass_both"]
+               for r in figures.gated_pair_runs("fresh")[1]}
+    def above(rel):
+        data = real(rel)
+        if rel.endswith("summary.json") and rel.split("/")[-2] in gated_fresh:
+            control = counted[rel.split("/")[-2].replace("gated-", "punished-")]
+            seed = int(rel.split("/")[-2].removeprefix("gated-seed"))
+            data = {**data, "after": {**data["after"], "greedy": {**data["after"]["greedy"],
+                                                                  "pass_both": control + 0.01 * seed / 21}}}
+        return data
+    monkeypatch.setattr(figures, "_json", above)
+    with pytest.raises(ValueError, match="detect no difference"):
+        figures.gated_figures()
+    # a gated run whose replies hold no digit
+    first = sorted(gated_fresh)[0]
+    def digit_free(rel):
+        data = real(rel)
+        if rel == f"gated/fresh/{first}/summary.json":
+            greedy = data["after"]["greedy"]
+            samples = [{**x, "completion": "No digits in this reply at all!!"} for x in greedy["samples"]]
+            data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": samples}}}
+        return data
+    monkeypatch.setattr(figures, "_json", digit_free)
+    with pytest.raises(ValueError, match="no gated run ended on replies without a digit"):
+        figures.gated_figures()
+    # the gated run that ended length first, with its replies all different: no fixed sentence
+    def scattered(rel):
+        data = real(rel)
+        if rel == "gated/fresh/gated-seed24/summary.json":
+            greedy = data["after"]["greedy"]
+            samples = [{**x, "completion": f"{x['completion']}{i}"} for i, x in enumerate(greedy["samples"])]
+            data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": samples}}}
+        return data
+    monkeypatch.setattr(figures, "_json", scattered)
+    with pytest.raises(ValueError, match="a fixed number for most prompts"):
+        figures.gated_figures()

@@ -207,6 +207,7 @@ def test_every_partial_credit_is_one_on_passing_texts(target_sum, padding, seed)
     assert rewards.binary_reward(["p"], [text], **kw) == [1.0]
     assert rewards.graded_reward(["p"], [text], **kw) == [1.0]
     assert rewards.counted_reward(["p"], [text], **kw) == [1.0]
+    assert rewards.gated_reward(["p"], [text], **kw) == [1.0]
 
 
 def test_counted_pays_any_two_digits_near_ten_at_least_twice_a_lone_nine():
@@ -218,3 +219,38 @@ def test_counted_pays_any_two_digits_near_ten_at_least_twice_a_lone_nine():
     assert digit_credit("9") == pytest.approx(0.25)
     near = [f"{a}{b}" for a in range(10) for b in range(10) if abs(a + b - 10) <= 1]
     assert near and all(digit_credit(p) >= 0.5 - 1e-12 for p in near)
+
+
+def test_gated_reward_multiplies_counted_credits_on_hand_examples():
+    """'gated' = counted's digit credit x (1/2 + 1/2 x length credit): nothing without a digit
+    against a positive target."""
+    def gated(text, L=10, S=12):
+        return rewards.gated_reward(["p"], [text], target_chars=[L], target_digit_sum=[S])[0]
+
+    assert gated("abcdefgh39") == 1.0
+    assert gated("abcdefghij") == 0.0                     # counted pays this 1/2
+    assert gated("abcdefgh00") == 0.0                     # digits adding up to 0 are none
+    assert gated("abc") == 0.0
+    assert gated("abcdefgh45") == pytest.approx(1 / 4)    # right length, digit credit 1/4
+    assert gated("abcdefghi9") == pytest.approx(1 / 8)    # one digit short of 2: halved
+    # right digits, one character off: length credit 1/2 / (1 + 1/10) + 1/2 / 2
+    length_credit = 0.5 / 1.1 + 0.25
+    assert gated("abcdefghi39") == pytest.approx(0.5 + 0.5 * length_credit)
+    assert gated("abcdefghi39") > gated("abcdefghij39") > gated("abcdefgh56") > 0
+    # a target of 0 is met by a reply without digits, so that reply is not refused
+    assert gated("abcdefghij", S=0) == 1.0
+    assert rewards.get_reward_fn("gated") is rewards.gated_reward
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=st.text(), target_chars=st.integers(1, 200), target_sum=st.integers(0, 300))
+def test_gated_reward_is_one_exactly_when_binary_is_and_never_above_counted(text, target_chars,
+                                                                            target_sum):
+    """digit x (1/2 + length/2) <= digit/2 + length/2 for credits in [0, 1], so gated <= counted."""
+    kw = dict(target_chars=[target_chars], target_digit_sum=[target_sum])
+    b = rewards.binary_reward(["p"], [text], **kw)[0]
+    g = rewards.gated_reward(["p"], [text], **kw)[0]
+    assert 0.0 <= g <= rewards.counted_reward(["p"], [text], **kw)[0]
+    assert (g == 1.0) == (b == 1.0)
+    sums_to_zero = rewards.check(text, target_chars, target_sum).digit_sum == 0
+    assert (g == 0.0) == (sums_to_zero and target_sum > 0)

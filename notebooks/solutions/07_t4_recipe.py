@@ -1171,6 +1171,140 @@ else:
 # seeds, not one.
 
 # %% [markdown]
+# ### 6.8 Digits first: a credit without a safe harbour
+#
+# Read section 6.7's runs by how they ended rather than by their seed. Of the
+# eight, three found the template (here: passed
+# at least 90% of their one-digit targets held out). Of the
+# others, two ended with more held-out replies of the right
+# length than with the right digit sum (`figures.dead_end`), and
+# three the other way round. The first kind is the instructive
+# one. Seed 18's bf16 run writes "That's a pretty inspiring story." for every
+# prompt: exactly 32 characters and no digit. Against a target of 10 the
+# counted credit pays it 0.50, the whole of its length half. Better
+# replies were close: for a one-digit target, one letter swapped for the right digit passes
+# outright. The policy hardly ever wrote one. Half its sampled replies had the right length by
+# step 31, and from then to step 150 only
+# 3 of its 3,840 sampled replies
+# had the right digit sum. The length half of the credit can be climbed with no digit at all,
+# and this run climbed it; after that, what it sampled almost never pointed at a digit.
+#
+# The change is to make the length pay only through the digits (`rewards.gated_score`):
+#
+# $$\text{gated} = D \left(\tfrac12 + \tfrac12\, \ell\right), \qquad D = d \cdot 2^{-\text{digits short}},$$
+#
+# with $d = 1/(1 + |\text{digit sum} - S|)$ the counted credit's digit part (0 when the digits
+# add up to 0, none or only zeros, against a positive $S$), digits short as in 6.4, and $\ell$
+# the same length credit. A reply without a digit earns nothing
+# (0.00 for the sentence above), and the length pays in proportion to
+# what the digits earned, so the digits have to come first. Among replies whose digits are right
+# the length still ranks them, between 1/2 (excluded) and 1. It is 1 exactly when the binary
+# reward is 1, and never above the counted credit $\frac12 D + \frac12 \ell$: their difference
+# is $\frac12 \ell (D - 1) \le 0$. `tests/test_rewards.py` checks both on arbitrary text, and
+# the formula on hand examples; the cell prints both credits for a few replies.
+
+# %%
+from course_utils import rewards
+
+for reply, digit_target in [("That's a pretty inspiring story.", 10),
+                            ("You will need to use the digit 8", 8),
+                            ("You will need to use the digit 8", 12),
+                            ("19 Years. That sounds beautiful.", 10),
+                            ("19 Years. That sounds beautiful.", 12),
+                            ("19 Years. That sounds nice.", 10),
+                            ("44 characters (space not needed)", 8),
+                            ("44 characters (space not needed)", 10)]:
+    checked = rewards.check(reply, 32, digit_target)
+    print(f"{reply!r:38} S = {digit_target:2}: counted {rewards.counted_score(checked, 32, digit_target):.3f}, "
+          f"gated {rewards.gated_score(checked, 32, digit_target):.3f}")
+
+# %% [markdown]
+# The design is one change, `--reward gated`, to section 6.6's punished recipe, in bf16 on a
+# CPU with bf16 units. It was screened first on section 6.7's seeds
+# 16, 17, 18 and 19, against their stored bf16 runs as controls. Those seeds had
+# already been used, so this table chose the change and proves nothing:
+#
+# | seed | gated: both | gated: one-digit | gated: two-digit | gated: distinct | gated: entropy, last 5 steps | counted: both | counted: one-digit | counted: two-digit | counted: distinct | counted: entropy, last 5 steps |
+# |---|---|---|---|---|---|---|---|---|---|---|
+# | 16 | 12.5% | 17.4% | 0.0% | 43 | 1.80 | 7.8% | 10.9% | 0.0% | 43 | 3.13 |
+# | 17 | 68.8% | 100.0% | 0.0% | 9 | 1.94 | 68.8% | 100.0% | 0.0% | 8 | 0.44 |
+# | 18 | 70.3% | 100.0% | 20.8% | 8 | 0.24 | 0.0% | 0.0% | 0.0% | 1 | 0.75 |
+# | 19 | 68.8% | 100.0% | 0.0% | 17 | 1.26 | 68.8% | 100.0% | 0.0% | 8 | 0.37 |
+#
+# - gated minus counted, both constraints: per-seed differences [+4.7%, +0.0%, +70.3%, +0.0%], mean +18.8%, 95% t-interval [-36.1%, +73.6%] (3 df), sign-flip p = 0.5 (its smallest possible with 2 of 4 seeds differing: 0.5); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 71.7% at 80% power if the true spread were the observed one, itself a rough estimate from 3 df)
+# - gated minus counted, two-digit targets: per-seed differences [+0.0%, +0.0%, +20.8%, +0.0%], mean +5.2%, 95% t-interval [-11.4%, +21.8%] (3 df), sign-flip p = 1 (its smallest possible with 1 of 4 seeds differing: 1); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 21.7% at 80% power if the true spread were the observed one, itself a rough estimate from 3 df)
+#
+# Then, with nothing changed, on fresh seeds 21, 22, 23, 24 and 25 that chose nothing,
+# each seed's gated run beside a control, the punished recipe. The build checks that the runs of
+# a pair differ in `reward` alone and ran in bf16 on the same CPU capability:
+#
+# | seed | gated: both | gated: one-digit | gated: two-digit | gated: distinct | gated: entropy, last 5 steps | counted: both | counted: one-digit | counted: two-digit | counted: distinct | counted: entropy, last 5 steps |
+# |---|---|---|---|---|---|---|---|---|---|---|
+# | 21 | 14.1% | 20.5% | 4.0% | 35 | 3.69 | 73.4% | 100.0% | 32.0% | 8 | 0.40 |
+# | 22 | 6.2% | 0.0% | 19.0% | 8 | 1.70 | 10.9% | 16.3% | 0.0% | 5 | 0.22 |
+# | 23 | 79.7% | 98.0% | 20.0% | 14 | 0.85 | 76.6% | 100.0% | 0.0% | 21 | 0.32 |
+# | 24 | 9.4% | 12.8% | 0.0% | 5 | 0.85 | 3.1% | 4.3% | 0.0% | 47 | 2.41 |
+# | 25 | 68.8% | 100.0% | 0.0% | 8 | 0.48 | 9.4% | 11.4% | 5.0% | 48 | 3.34 |
+#
+# - gated minus counted, both constraints: per-seed differences [-59.4%, -4.7%, +3.1%, +6.2%, +59.4%], mean +0.9%, 95% t-interval [-51.4%, +53.3%] (4 df), sign-flip p = 0.875 (its smallest possible with 5 seeds: 0.0625); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 70.1% at 80% power if the true spread were the observed one, itself a rough estimate from 4 df)
+# - gated minus counted, two-digit targets: per-seed differences [-28.0%, +19.0%, +20.0%, +0.0%, -5.0%], mean +1.2%, 95% t-interval [-23.3%, +25.8%] (4 df), sign-flip p = 1 (its smallest possible with 4 of 5 seeds differing: 0.125); the t-interval includes 0: no difference detected (a t-test on these seeds would detect about 32.9% at 80% power if the true spread were the observed one, itself a rough estimate from 4 df)
+#
+# **What the fresh seeds say.** The gated recipe passed 35.6% of the
+# held-out prompts on average (worst seed 6.2%, two-digit targets
+# 8.6%), the counted recipe 34.7% (worst
+# 3.1%, two-digit 7.4%); the paired
+# difference, its interval and the smallest difference these seeds could detect are the first
+# line under the table. Of the fresh runs, two gated and
+# two counted found the template.
+#
+# **How the runs ended**, over both stages (nine runs per arm; `figures.dead_end`):
+#
+# | | template | length first | digits first |
+# |---|---|---|---|
+# | gated | 5 | 1 | 3 |
+# | counted | 4 | 2 | 3 |
+#
+# No gated run ended on replies without a digit, the end the gate was built against; among the
+# counted runs one did, seed 18's, an end too
+# rare in nine runs for these seeds to say the gate prevents it. And the
+# length-first end has a second form that the gate leaves open: one sentence of the
+# right length with one fixed number in it (gated seed 24 writes "44 characters (space not needed)" (digit sum 8) for 32 of 64 prompts; counted seed 22 writes "33 Characters to Your salvation?" (digit sum 6) for 52 of 64 prompts). Where its
+# digits are right that sentence passes, and near there the gate still pays a part of it (the
+# cell above prints one such sentence against its own digit sum and one two above it): a reply
+# the policy can settle on for every prompt, with no digit-free reply needed. The gated runs that failed
+# otherwise ended digits first, with the right digits and a length that never settled (the last
+# table shows what each writes); a reply one character off with the right digit still earns a
+# gated score of 0.87, a near miss that leaves little spread in a group.
+# Two-digit passes sampled in training, per fresh seed: 11, 39, 70, 5 and 65 for
+# gated, 54, 0, 0, 3 and 13 for counted.
+#
+# The verdict: on fresh seeds the gate made no difference these seeds could detect, and in both
+# arms the template still came and went from seed to seed. Neither recipe meets what a recipe worth
+# shipping would need (a mean of 80% over fresh seeds with no seed below
+# 60%), so the presets stay as they are. What this points to: a partial
+# credit can close one dead end while another stays open, because whatever a fixed reply earns,
+# a policy can settle on it, and which end a run reaches depends on what it sampled before it
+# settled. Each gated run above ends its two-digit targets on one fixed number, so the next lever
+# to try is exploration at the digits (larger groups for the prompts whose group has no spread),
+# not another shape of the credit.
+#
+# What the gated policies write held out, per target digit sum (greedy; the most frequent reply
+# and its digit sum):
+#
+# | target digit sum | seed 21: passed | most frequent completion (its digit sum) | seed 22: passed | most frequent completion (its digit sum) | seed 23: passed | most frequent completion (its digit sum) | seed 24: passed | most frequent completion (its digit sum) | seed 25: passed | most frequent completion (its digit sum) |
+# |---|---|---|---|---|---|---|---|---|---|---|
+# | 3 | 3 of 6 | `3. How to Tell A Night Of Dreams` (3) | 0 of 3 | `Continue exactly 3 characters .` (3) | 4 of 4 | `3 amazing delicious meals worth.` (3) | 0 of 7 | `4 characters (space not needed)` (4) | 7 of 7 | `3ortunately that was exactly it.` (3) |
+# | 4 | 0 of 7 | `4. How To Tell A Star From A Night` (4) | 0 of 8 | `Continue exactly 4 characters .` (4) | 11 of 12 | `4 amazing delicious meals worth.` (4) | 0 of 9 | `4 characters (Space Not Too Long)` (4) | 4 of 4 | `4ortunately that was exactly it.` (4) |
+# | 5 | 0 of 3 | `5. How To Solve The Stars Of Dark.` (5) | 0 of 7 | `Continue exactly 5 characters .` (5) | 7 of 7 | `5 amazing delicious meals worth.` (5) | 0 of 7 | `4 characters (space not needed)` (4) | 11 of 11 | `5ortunately that was exactly it.` (5) |
+# | 6 | 0 of 4 | `6. How To Solve The Stars Of Dark` (6) | 0 of 7 | `Continue exactly 6 characters .` (6) | 6 of 6 | `6 amazing delicious meals worth.` (6) | 0 of 4 | `4 characters (space not needed)` (4) | 8 of 8 | `6ortunately that was exactly it.` (6) |
+# | 7 | 0 of 5 | `7. How to Tell A Night Of Love` (7) | 0 of 10 | `Continue exactly 7 characters .` (7) | 4 of 4 | `7 amazing delicious meals worth.` (7) | 0 of 6 | `44 characters (space not needed)` (8) | 7 of 7 | `7ortunately that was exactly it.` (7) |
+# | 8 | 3 of 7 | `8. How To Solve The Darkest Night.` (8) | 0 of 4 | `Continue exactly 8 characters .` (8) | 5 of 5 | `8 amazing delicious meals worth.` (8) | 6 of 9 | `44 characters (space not needed)` (8) | 5 of 5 | `8ortunately that was exactly it.` (8) |
+# | 9 | 2 of 7 | `9. How To Solve The Darkest Night.` (9) | 0 of 4 | `Continue exactly 9 characters .` (9) | 11 of 11 | `9 amazing delicious meals worth.` (9) | 0 of 5 | `44 characters (space not needed)` (8) | 2 of 2 | `9ortunately that was exactly it.` (9) |
+# | 10 | 1 of 8 | `1234 Invisible Antique Antique Antique.` (10) | 0 of 8 | `Continue exactly 66 characters .` (12) | 0 of 6 | `1433 words worth of text edited.` (11) | 0 of 6 | `44 characters (space not needed)` (8) | 0 of 9 | `19ortunately that was exactly it.` (10) |
+# | 11 | 0 of 7 | `1234 Invisible Nightmares Over The Sea.` (10) | 0 of 9 | `Continue exactly 66 characters .` (12) | 3 of 3 | `1433 words worth of text edited.` (11) | 0 of 5 | `4 characters (space not needed)` (4) | 0 of 6 | `19ortunately that was exactly it.` (10) |
+# | 12 | 0 of 10 | `1234 The Greatest Ever.` (10) | 4 of 4 | `Continue exactly 66 characters .` (12) | 0 of 6 | `1433 words worth of text edited.` (11) | 0 of 6 | `44 characters (space not needed)` (8) | 0 of 5 | `19ortunately that was exactly it.` (10) |
+
+# %% [markdown]
 # ## 7. Next steps: the same rewards in TRL
 #
 # `course_utils.rewards` functions have TRL's signature, so TRL's `GRPOTrainer` takes them

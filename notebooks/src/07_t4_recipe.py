@@ -915,6 +915,112 @@ else:
 # seeds, not one.
 
 # %% [markdown]
+# ### 6.8 Digits first: a credit without a safe harbour
+#
+# Read section 6.7's runs by how they ended rather than by their seed. Of the
+# {{fig:gated.precision_runs}}, {{fig:gated.precision_templates}} found the template (here: passed
+# at least {{fig:gated.template_share}} of their one-digit targets held out). Of the
+# others, {{fig:gated.precision_length_first}} ended with more held-out replies of the right
+# length than with the right digit sum (`figures.dead_end`), and
+# {{fig:gated.precision_digits_first}} the other way round. The first kind is the instructive
+# one. Seed {{fig:gated.dead_end_seed}}'s bf16 run writes "{{fig:gated.dead_end}}" for every
+# prompt: exactly 32 characters and no digit. Against a target of {{fig:gated.dead_end_sum}} the
+# counted credit pays it {{fig:gated.dead_end_counted}}, the whole of its length half. Better
+# replies were close: for a one-digit target, one letter swapped for the right digit passes
+# outright. The policy hardly ever wrote one. Half its sampled replies had the right length by
+# step {{fig:gated.dead_end_length_step}}, and from then to step {{fig:gated.dead_end_steps}} only
+# {{fig:gated.dead_end_digit_hits}} of its {{fig:gated.dead_end_later_samples}} sampled replies
+# had the right digit sum. The length half of the credit can be climbed with no digit at all,
+# and this run climbed it; after that, what it sampled almost never pointed at a digit.
+#
+# The change is to make the length pay only through the digits (`rewards.gated_score`):
+#
+# $$\text{gated} = D \left(\tfrac12 + \tfrac12\, \ell\right), \qquad D = d \cdot 2^{-\text{digits short}},$$
+#
+# with $d = 1/(1 + |\text{digit sum} - S|)$ the counted credit's digit part (0 when the digits
+# add up to 0, none or only zeros, against a positive $S$), digits short as in 6.4, and $\ell$
+# the same length credit. A reply without a digit earns nothing
+# ({{fig:gated.dead_end_gated}} for the sentence above), and the length pays in proportion to
+# what the digits earned, so the digits have to come first. Among replies whose digits are right
+# the length still ranks them, between 1/2 (excluded) and 1. It is 1 exactly when the binary
+# reward is 1, and never above the counted credit $\frac12 D + \frac12 \ell$: their difference
+# is $\frac12 \ell (D - 1) \le 0$. `tests/test_rewards.py` checks both on arbitrary text, and
+# the formula on hand examples; the cell prints both credits for a few replies.
+
+# %%
+from course_utils import rewards
+
+for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_end_sum}}),
+                            ("You will need to use the digit 8", 8),
+                            ("You will need to use the digit 8", 12),
+                            ("19 Years. That sounds beautiful.", 10),
+                            ("19 Years. That sounds beautiful.", 12),
+                            ("19 Years. That sounds nice.", 10),
+                            ("44 characters (space not needed)", 8),
+                            ("44 characters (space not needed)", 10)]:
+    checked = rewards.check(reply, 32, digit_target)
+    print(f"{reply!r:38} S = {digit_target:2}: counted {rewards.counted_score(checked, 32, digit_target):.3f}, "
+          f"gated {rewards.gated_score(checked, 32, digit_target):.3f}")
+
+# %% [markdown]
+# The design is one change, `--reward gated`, to section 6.6's punished recipe, in bf16 on a
+# CPU with bf16 units. It was screened first on section 6.7's seeds
+# {{fig:gated.tuning_seed_list}}, against their stored bf16 runs as controls. Those seeds had
+# already been used, so this table chose the change and proves nothing:
+#
+# {{GATED_TUNING}}
+#
+# Then, with nothing changed, on fresh seeds {{fig:gated.fresh_seed_list}} that chose nothing,
+# each seed's gated run beside a control, the punished recipe. The build checks that the runs of
+# a pair differ in `reward` alone and ran in bf16 on the same CPU capability:
+#
+# {{GATED_FRESH}}
+#
+# **What the fresh seeds say.** The gated recipe passed {{fig:gated.fresh_gated_mean}} of the
+# held-out prompts on average (worst seed {{fig:gated.fresh_gated_worst}}, two-digit targets
+# {{fig:gated.fresh_gated_two_mean}}), the counted recipe {{fig:gated.fresh_counted_mean}} (worst
+# {{fig:gated.fresh_counted_worst}}, two-digit {{fig:gated.fresh_counted_two_mean}}); the paired
+# difference, its interval and the smallest difference these seeds could detect are the first
+# line under the table. Of the fresh runs, {{fig:gated.fresh_gated_templates}} gated and
+# {{fig:gated.fresh_counted_templates}} counted found the template.
+#
+# **How the runs ended**, over both stages ({{fig:gated.gated_runs}} runs per arm; `figures.dead_end`):
+#
+# | | template | length first | digits first |
+# |---|---|---|---|
+# | gated | {{fig:gated.gated_templates}} | {{fig:gated.gated_length_first}} | {{fig:gated.gated_digits_first}} |
+# | counted | {{fig:gated.counted_templates}} | {{fig:gated.counted_length_first}} | {{fig:gated.counted_digits_first}} |
+#
+# No gated run ended on replies without a digit, the end the gate was built against; among the
+# counted runs {{fig:gated.counted_digit_free}} did, seed {{fig:gated.dead_end_seed}}'s, an end too
+# rare in {{fig:gated.counted_runs}} runs for these seeds to say the gate prevents it. And the
+# length-first end has a second form that the gate leaves open: one sentence of the
+# right length with one fixed number in it ({{fig:gated.fixed_number_examples}}). Where its
+# digits are right that sentence passes, and near there the gate still pays a part of it (the
+# cell above prints one such sentence against its own digit sum and one two above it): a reply
+# the policy can settle on for every prompt, with no digit-free reply needed. The gated runs that failed
+# otherwise ended digits first, with the right digits and a length that never settled (the last
+# table shows what each writes); a reply one character off with the right digit still earns a
+# gated score of {{fig:gated.one_off}}, a near miss that leaves little spread in a group.
+# Two-digit passes sampled in training, per fresh seed: {{fig:gated.fresh_gated_two_sampled}} for
+# gated, {{fig:gated.fresh_counted_two_sampled}} for counted.
+#
+# The verdict: on fresh seeds the gate made no difference these seeds could detect, and in both
+# arms the template still came and went from seed to seed. Neither recipe meets what a recipe worth
+# shipping would need (a mean of {{fig:gated.bar_mean}} over fresh seeds with no seed below
+# {{fig:gated.bar_worst}}), so the presets stay as they are. What this points to: a partial
+# credit can close one dead end while another stays open, because whatever a fixed reply earns,
+# a policy can settle on it, and which end a run reaches depends on what it sampled before it
+# settled. Each gated run above ends its two-digit targets on one fixed number, so the next lever
+# to try is exploration at the digits (larger groups for the prompts whose group has no spread),
+# not another shape of the credit.
+#
+# What the gated policies write held out, per target digit sum (greedy; the most frequent reply
+# and its digit sum):
+#
+# {{GATED_BY_TARGET}}
+
+# %% [markdown]
 # ## 7. Next steps: the same rewards in TRL
 #
 # `course_utils.rewards` functions have TRL's signature, so TRL's `GRPOTrainer` takes them
