@@ -730,11 +730,12 @@ def gated_figures() -> dict[str, str]:
     """Lesson 7, 6.8, and the README: the gated credit against the counted one, paired by seed."""
     from course_utils import ablation, rewards, stats
 
-    figs = {}
+    figs, greedy = {}, {}   # greedy: each run's held-out greedy results, read once
     for stage in ("tuning", "fresh"):
         _check_gated_pairs(stage)
         gated, counted = gated_pair_runs(stage)
         after = {r: _json(f"{_relative(r)}/summary.json")["after"]["greedy"] for r in gated + counted}
+        greedy |= after
         both = stats.paired([after[r]["pass_both"] for r in gated], [after[r]["pass_both"] for r in counted])
         if stage == "fresh" and both.significant:
             raise ValueError(f"lesson 7, 6.8 and the README say the fresh seeds detect no difference: {both}")
@@ -769,7 +770,7 @@ def gated_figures() -> dict[str, str]:
              if end == "length" and r not in free[arm]]
     examples = []
     for arm, run in fixed:
-        samples = _json(f"{_relative(run)}/summary.json")["after"]["greedy"]["samples"]
+        samples = greedy[run]["samples"]
         reply, count = collections.Counter(x["completion"] for x in samples).most_common(1)[0]
         top = rewards.check(reply, samples[0]["target_chars"], 0)
         if not top.n_digits or not top.length_ok or 2 * count < len(samples):
@@ -780,9 +781,8 @@ def gated_figures() -> dict[str, str]:
                         f'for {count} of {len(samples)} prompts')
     if not any(arm == "gated" for arm, _ in fixed):
         raise ValueError("lesson 7, 6.8 says a gated run ended length first on a fixed number")
-    fresh = {arm: [_json(f"{_relative(r)}/summary.json")["after"]["greedy"]["pass_both"] for r in runs]
-             for arm, runs in zip(("gated", "counted"), pairs["fresh"])}
-    if 2 * sum(end is None for end in _ends(pairs["fresh"][0])) > len(GATED_FRESH_SEEDS):
+    fresh = {arm: [greedy[r]["pass_both"] for r in runs] for arm, runs in zip(("gated", "counted"), pairs["fresh"])}
+    if 2 * ends["gated"][len(GATED_TUNING_SEEDS):].count(None) > len(GATED_FRESH_SEEDS):
         raise ValueError("lesson 7, 6.8 says the template did not become the likely path on fresh seeds")
     if any(statistics.mean(p) >= SHIP_MEAN and min(p) >= SHIP_WORST for p in fresh.values()):
         raise ValueError(f"lesson 7, 6.8 says neither recipe met the bar on fresh seeds: {fresh}")
