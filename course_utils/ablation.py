@@ -221,6 +221,8 @@ def completions_by_target(runs: list[Path], labels: list[str] | None = None) -> 
         raise ValueError(f"{len(labels)} labels for {len(runs)} runs")
     header = "| target digit sum | " + " | ".join(
         f"{label}: passed | most frequent completion (its digit sum)" for label in labels) + " |"
+    # a tie for the most frequent completion is broken by prompt order (top_completion) and
+    # said in the cell, so the table never presents an arbitrary pick as the policy's habit
     lines = [header, "|" + "---|" * (1 + 2 * len(runs))]
     targets = sorted({s["target_digit_sum"] for samples in afters for s in samples})
     for target in targets:
@@ -230,7 +232,10 @@ def completions_by_target(runs: list[Path], labels: list[str] | None = None) -> 
             passed = sum(s["n_chars"] == s["target_chars"] and s["digit_sum"] == target for s in mine)
             top = top_completion(mine).strip() if mine else ""
             sums = {s["digit_sum"] for s in mine if s["completion"].strip() == top}
-            cells += [f"{passed} of {len(mine)}", f"`{_cell(top)}` ({', '.join(map(str, sorted(sums)))})"
+            counts = Counter(s["completion"] for s in mine).most_common()
+            tied = sum(n == counts[0][1] for _, n in counts) - 1 if mine else 0
+            tie = f"; tied with {tied} other{'s' if tied > 1 else ''} at {counts[0][1]} each" if tied else ""
+            cells += [f"{passed} of {len(mine)}", f"`{_cell(top)}` ({', '.join(map(str, sorted(sums)))}{tie})"
                       if mine else "-"]
         lines.append(f"| {target} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -40,18 +40,38 @@ def _cpu_flags() -> set[str]:
 
 
 @functools.cache   # the machine does not change; torch's probe is not free
-def native_bf16() -> bool:
-    """True when bf16 matrix products run on hardware units (AMX or AVX512-BF16), not emulated.
+def bf16_units() -> str:
+    """Which hardware multiplies bf16 matrices here: 'AMX', 'AVX512-BF16' or 'none' (emulated).
 
     torch's own probe initializes AMX where the CPU and the kernel allow it; the flags cover
-    AVX512-BF16 without AMX. Apple Silicon and other ARM CPUs answer False (their bf16 support in
+    AVX512-BF16 without AMX. Apple Silicon and other ARM CPUs answer 'none' (their bf16 support in
     torch's CPU kernels is not what these measurements cover)."""
     if platform.machine().lower() not in ("x86_64", "amd64"):
-        return False
+        return "none"
     amx = getattr(torch._C._cpu, "_init_amx", None)
     if amx is not None and amx():
-        return True
-    return "avx512_bf16" in _cpu_flags()
+        return "AMX"
+    return "AVX512-BF16" if "avx512_bf16" in _cpu_flags() else "none"
+
+
+def native_bf16() -> bool:
+    """True when bf16 matrix products run on hardware units (AMX or AVX512-BF16), not emulated."""
+    return bf16_units() != "none"
+
+
+def machine() -> dict[str, str]:
+    """The CPU a run ran on, for its summary: the model name Linux reports and its bf16 units.
+    torch's ``get_cpu_capability()`` says 'AVX512' both on an AMX Xeon and on an AMD EPYC
+    without AMX, and a bf16 run's arithmetic differs between the two (lesson 7, 6.8)."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"model": model, "bf16_units": bf16_units()}
 
 
 def keep_freed_memory() -> bool:

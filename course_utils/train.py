@@ -889,6 +889,7 @@ def _train_in(run_dir: Path, cfg: Config, resume: bool, overwrite: bool, progres
     # only when these agree (lesson 7, section 6.5)
     summary["precision"] = effective_precision(cfg)
     summary["cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+    summary["cpu"] = cpu.machine()   # the capability alone does not tell AMX from AVX512-BF16
     checkpoint.write_json(summary_path, summary)
     print(_write_report(run_dir, summary, cfg))
     return summary

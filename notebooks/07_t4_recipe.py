@@ -870,16 +870,16 @@ for key, value in mine.items():
 #
 # | target digit sum | seed 10: passed | most frequent completion (its digit sum) | seed 11: passed | most frequent completion (its digit sum) | seed 12: passed | most frequent completion (its digit sum) | seed 13: passed | most frequent completion (its digit sum) | seed 14: passed | most frequent completion (its digit sum) |
 # |---|---|---|---|---|---|---|---|---|---|---|
-# | 3 | 0 of 4 | `The 3: 1  BILLY: 1.  BILLY: 2.` (7) | 3 of 6 | `The 100 * 0 * 0 * 10 = 100 * 0 *` (3) | 1 of 5 | `The old mill 3ft by 2, no.` (5) | 0 of 5 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 6 of 6 | `Repetitions only.  3 characters.` (3) |
-# | 4 | 0 of 6 | `BONUS: 11:11  Lad: 11:11  L` (8) | 1 of 6 | `The 100 * 0 * 0 * 0 * 100 = 0 *` (2) | 0 of 6 | `The most important 4re is.` (4) | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  4 characters.` (4) |
-# | 5 | 0 of 7 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 10 | `The 10 * 0 * 0 * 0 * 10 * 10 * 1` (4) | 0 of 6 | `The most important 5re is.` (5) | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 6 of 6 | `Repetitions only.  5 characters.` (5) |
-# | 6 | 0 of 8 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 4 | `The 0000 * 0 * 0 * 100 = 0 * 0 *` (1) | 0 of 7 | `The most important 6n is.` (6) | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 3 of 3 | `Repetitions only,  6 characters.` (6) |
-# | 7 | 0 of 10 | `The 32  A:  A:  B:  C:  D:` (5) | 0 of 6 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The most important 7re no. no.` (7) | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 8 of 8 | `Repetitions only.  7 characters.` (7) |
-# | 8 | 0 of 9 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 10 | `10 * 0 * 0 * 1 = 0 * 1 = 10 * 1` (5) | 1 of 3 | `The most important 8girls  said.` (8) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  8 characters.` (8) |
+# | 3 | 0 of 4 | `The 3: 1  BILLY: 1.  BILLY: 2.` (7; tied with 3 others at 1 each) | 3 of 6 | `The 100 * 0 * 0 * 10 = 100 * 0 *` (3) | 1 of 5 | `The old mill 3ft by 2, no.` (5) | 0 of 5 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 6 of 6 | `Repetitions only.  3 characters.` (3) |
+# | 4 | 0 of 6 | `BONUS: 11:11  Lad: 11:11  L` (8; tied with 1 other at 2 each) | 1 of 6 | `The 100 * 0 * 0 * 0 * 100 = 0 *` (2) | 0 of 6 | `The most important 4re is.` (4) | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  4 characters.` (4) |
+# | 5 | 0 of 7 | `BILLY: 11:11  BILLY: 11:11` (8; tied with 2 others at 2 each) | 0 of 10 | `The 10 * 0 * 0 * 0 * 10 * 10 * 1` (4; tied with 1 other at 2 each) | 0 of 6 | `The most important 5re is.` (5) | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 6 of 6 | `Repetitions only.  5 characters.` (5) |
+# | 6 | 0 of 8 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 4 | `The 0000 * 0 * 0 * 100 = 0 * 0 *` (1; tied with 3 others at 1 each) | 0 of 7 | `The most important 6n is.` (6; tied with 1 other at 2 each) | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 3 of 3 | `Repetitions only,  6 characters.` (6) |
+# | 7 | 0 of 10 | `The 32  A:  A:  B:  C:  D:` (5) | 0 of 6 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4; tied with 1 other at 2 each) | 0 of 5 | `The most important 7re no. no.` (7; tied with 4 others at 1 each) | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 8 of 8 | `Repetitions only.  7 characters.` (7) |
+# | 8 | 0 of 9 | `BILLY: 11:11  BILLY: 11:11` (8) | 0 of 10 | `10 * 0 * 0 * 1 = 0 * 1 = 10 * 1` (5) | 1 of 3 | `The most important 8girls  said.` (8; tied with 2 others at 1 each) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 4 of 4 | `Repetitions only.  8 characters.` (8) |
 # | 9 | 0 of 4 | `The 32  A:  A:  B:  C:  D:` (5) | 0 of 7 | `The 10 * 0 + 10 * 0 = 10 * 0 + 1` (4) | 0 of 5 | `The old lady with 9re no more.` (9) | 0 of 6 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 9 of 9 | `Repetitions only.  9 characters.` (9) |
-# | 10 | 0 of 4 | `The 32  The 32  BILLY: 1111  B` (14) | 0 of 6 | `The 10 * 0 + 0 * 10 = 10 * 0 + 1` (4) | 0 of 9 | `The most important 19re, no.` (10) | 0 of 9 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `Repetitions only.  32 characters.` (5) |
-# | 11 | 0 of 4 | `BILLY: 11  BILLY: 11  BILLY: 1` (5) | 0 of 4 | `The 10 * 0 * 0 * 0 * 1 * 1 * 1 *` (4) | 0 of 10 | `The most important 19re, no.` (10) | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `Repetitions only.  32 characters.` (5) |
-# | 12 | 0 of 8 | `The 32  Lad: 32  Lad: 12  Lad` (13) | 0 of 5 | `The 12 * 0 * 0 * 0 * 12 * 0 * 1 *` (7) | 0 of 8 | `The most important 19g is.` (10) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 11 | `Repetitions only.  32 characters.` (5) |
+# | 10 | 0 of 4 | `The 32  The 32  BILLY: 1111  B` (14; tied with 3 others at 1 each) | 0 of 6 | `The 10 * 0 + 0 * 10 = 10 * 0 + 1` (4; tied with 5 others at 1 each) | 0 of 9 | `The most important 19re, no.` (10) | 0 of 9 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `Repetitions only.  32 characters.` (5) |
+# | 11 | 0 of 4 | `BILLY: 11  BILLY: 11  BILLY: 1` (5) | 0 of 4 | `The 10 * 0 * 0 * 0 * 1 * 1 * 1 *` (4; tied with 3 others at 1 each) | 0 of 10 | `The most important 19re, no.` (10) | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `Repetitions only.  32 characters.` (5) |
+# | 12 | 0 of 8 | `The 32  Lad: 32  Lad: 12  Lad` (13) | 0 of 5 | `The 12 * 0 * 0 * 0 * 12 * 0 * 1 *` (7) | 0 of 8 | `The most important 19g is.` (10; tied with 1 other at 2 each) | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 11 | `Repetitions only.  32 characters.` (5) |
 #
 # The `cpu` preset, run on the same fresh seeds and scored on the same held-out prompts, is
 # the comparison that says whether the frozen recipe is worth its extra steps. Paired by seed
@@ -1057,14 +1057,14 @@ else:
 # | target digit sum | seed 13, stored run: passed | most frequent completion (its digit sum) | seed 13, control: passed | most frequent completion (its digit sum) | seed 13, punished: passed | most frequent completion (its digit sum) |
 # |---|---|---|---|---|---|---|
 # | 3 | 0 of 5 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 0 of 5 | `The love adds 3 perfectly.` (3) | 0 of 5 | `3 characters! That's ingenious!` (3) |
-# | 4 | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `The sun adds 4 perfectly.` (4) | 0 of 5 | `4 characters! That's ingenious!` (4) |
-# | 5 | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 2 | `The team adds 5 perfectly.` (5) | 0 of 2 | `5 characters! That's ingenious!` (5) |
-# | 6 | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 0 of 10 | `The magic adds 6 perfectly.` (6) | 0 of 10 | `6 characters! That's ingenious!` (6) |
-# | 7 | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `The power adds 7 perfectly.` (7) | 0 of 8 | `7 characters! That's ingenious!` (7) |
-# | 8 | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 6 | `The code adds 8 perfectly.` (8) | 0 of 6 | `8 characters! That's ingenious!` (8) |
+# | 4 | 0 of 5 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 5 | `The sun adds 4 perfectly.` (4; tied with 4 others at 1 each) | 0 of 5 | `4 characters! That's ingenious!` (4) |
+# | 5 | 0 of 2 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 2 | `The team adds 5 perfectly.` (5; tied with 1 other at 1 each) | 0 of 2 | `5 characters! That's ingenious!` (5) |
+# | 6 | 0 of 10 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 0 of 10 | `The magic adds 6 perfectly.` (6; tied with 2 others at 2 each) | 0 of 10 | `6 characters! That's ingenious!` (6) |
+# | 7 | 3 of 8 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 8 | `The power adds 7 perfectly.` (7; tied with 1 other at 2 each) | 0 of 8 | `7 characters! That's ingenious!` (7) |
+# | 8 | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 6 | `The code adds 8 perfectly.` (8; tied with 5 others at 1 each) | 0 of 6 | `8 characters! That's ingenious!` (8) |
 # | 9 | 0 of 6 | `DIGITIACY! 1 + 2 + 1 + 1 + 1 + 1` (7) | 0 of 6 | `The library added 9 to every corner.` (9) | 0 of 6 | `9 characters! That's ingenious!` (9) |
 # | 10 | 0 of 9 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 9 | `The code adds 19 to every.  The code adds 19 to every.` (20) | 9 of 9 | `19 characters! That's ingenious!` (10) |
-# | 11 | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 7 | `The old mill adds 19 to every.` (10) | 0 of 7 | `19 characters! That's ingenious!` (10) |
+# | 11 | 0 of 7 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 7 | `The old mill adds 19 to every.` (10; tied with 6 others at 1 each) | 0 of 7 | `19 characters! That's ingenious!` (10) |
 # | 12 | 0 of 6 | `1 + 2 + 1 + 1 + 1 + 1 + 1 + 1 +` (9) | 0 of 6 | `The magic adds 19 to every corner.` (10) | 0 of 6 | `19 characters! That's ingenious!` (10) |
 #
 # Seed 15:
@@ -1183,11 +1183,13 @@ else:
 # prompt: exactly 32 characters and no digit. Against a target of 10 the
 # counted credit pays it 0.50, the whole of its length half. Better
 # replies were close: for a one-digit target, one letter swapped for the right digit passes
-# outright. The policy hardly ever wrote one. Half its sampled replies had the right length by
-# step 31, and from then to step 150 only
-# 3 of its 3,840 sampled replies
-# had the right digit sum. The length half of the credit can be climbed with no digit at all,
-# and this run climbed it; after that, what it sampled almost never pointed at a digit.
+# outright. The policy hardly ever sampled one, and not only once it had learned the length:
+# 1 of its 960 sampled replies had the
+# right digit sum before the share with the right length first reached half (step
+# 31), and 3 of
+# 3,840 from then to step 150. The digit half
+# of the credit gave this run almost no signal from the start, while the length half can be
+# climbed with no digit at all, and this run climbed it.
 #
 # The change is to make the length pay only through the digits (`rewards.gated_score`):
 #
@@ -1236,7 +1238,16 @@ for reply, digit_target in [("That's a pretty inspiring story.", 10),
 #
 # Then, with nothing changed, on fresh seeds 21, 22, 23, 24 and 25 that chose nothing,
 # each seed's gated run beside a control, the punished recipe. The build checks that the runs of
-# a pair differ in `reward` alone and ran in bf16 on the same CPU capability:
+# a pair differ in `reward` alone and ran in bf16 on the same CPU capability. Both runs of a pair
+# ran on one machine, one after the other, but not every pair on the same machine:
+# seeds 21, 22, 23 and 24 on an Intel Xeon with AMX, seed 25 on an AMD EPYC with AVX512-BF16 and no AMX (`results/gated/fresh/machines.json`, written from the session logs:
+# these runs predate the `cpu` field that `summary.json` now records, and torch's capability
+# reads "AVX512" on both). The wall times agree with that file, and the build checks them: the
+# runs of each pair within 1.25x of each other, and seed
+# 25's pair about 1.9x as long as the
+# others. The kind of bf16 unit can change a bf16 run's rounding, and section 6.7 showed how far a change
+# of rounding can move a run. So the machine adds to the spread between seeds; it is the same
+# for both runs of a pair, so it does not enter a pair's difference.
 #
 # | seed | gated: both | gated: one-digit | gated: two-digit | gated: distinct | gated: entropy, last 5 steps | counted: both | counted: one-digit | counted: two-digit | counted: distinct | counted: entropy, last 5 steps |
 # |---|---|---|---|---|---|---|---|---|---|---|
@@ -1257,24 +1268,33 @@ for reply, digit_target in [("That's a pretty inspiring story.", 10),
 # line under the table. Of the fresh runs, two gated and
 # two counted found the template.
 #
-# **How the runs ended**, over both stages (nine runs per arm; `figures.dead_end`):
+# **How the runs ended** (`figures.dead_end`), per stage:
 #
 # | | template | length first | digits first |
 # |---|---|---|---|
-# | gated | 5 | 1 | 3 |
-# | counted | 4 | 2 | 3 |
+# | gated, screen (seeds 16, 17, 18 and 19) | 3 | 0 | 1 |
+# | gated, fresh (seeds 21, 22, 23, 24 and 25) | 2 | 1 | 2 |
+# | counted, screen | 2 | 1 | 1 |
+# | counted, fresh | 2 | 1 | 2 |
 #
-# No gated run ended on replies without a digit, the end the gate was built against; among the
-# counted runs one did, seed 18's, an end too
-# rare in nine runs for these seeds to say the gate prevents it. And the
-# length-first end has a second form that the gate leaves open: one sentence of the
-# right length with one fixed number in it (gated seed 24 writes "44 characters (space not needed)" (digit sum 8) for 32 of 64 prompts; counted seed 22 writes "33 Characters to Your salvation?" (digit sum 6) for 52 of 64 prompts). Where its
-# digits are right that sentence passes, and near there the gate still pays a part of it (the
-# cell above prints one such sentence against its own digit sum and one two above it): a reply
-# the policy can settle on for every prompt, with no digit-free reply needed. The gated runs that failed
-# otherwise ended digits first, with the right digits and a length that never settled (the last
-# table shows what each writes); a reply one character off with the right digit still earns a
-# gated score of 0.87, a near miss that leaves little spread in a group.
+# No gated run ended on replies without a digit, the end the gate was built against. Of the
+# nine counted runs one did, seed
+# 18's in the screen, and on the fresh seeds neither arm did: an end too
+# rare here for these seeds to say the gate prevents it. The length-first end has a second form
+# that the gate leaves open: one sentence of the right length with one fixed number in it
+# (gated seed 24 writes "44 characters (space not needed)" (digit sum 8) for 32 of 64 prompts; counted seed 22 writes "33 Characters to Your salvation?" (digit sum 6) for 52 of 64 prompts). The form is older than the gate; in section 6.7,
+# fp32 seed 18 writes "34 characters with your feedback" (digit sum 7) for 45 of 64 prompts. Where its digits are right that sentence passes, and near
+# there the gate still pays a part of it (the cell above prints one such sentence against its own
+# digit sum and one two above it): a reply the policy can settle on for every prompt, with no
+# digit-free reply needed.
+#
+# Of the three gated runs that ended digits first,
+# seeds 16 and 21 never settled on one frame (the reply with its digits taken
+# out: no frame was written for more than half the prompts), and seed 22 wrote one frame for 64 of 64 prompts ("Continue exactly 7 characters ." for a one-digit target):
+# a frame 31 characters long with a one-digit number, a template one character short of the
+# one-digit targets. A reply one character off with the right digits earns
+# 0.87 under either credit: the two agree wherever the digits are right
+# (D = 1), so the gate changes nothing for near misses of that kind.
 # Two-digit passes sampled in training, per fresh seed: 11, 39, 70, 5 and 65 for
 # gated, 54, 0, 0, 3 and 13 for counted.
 #
@@ -1284,9 +1304,14 @@ for reply, digit_target in [("That's a pretty inspiring story.", 10),
 # 60%), so the presets stay as they are. What this points to: a partial
 # credit can close one dead end while another stays open, because whatever a fixed reply earns,
 # a policy can settle on it, and which end a run reaches depends on what it sampled before it
-# settled. Each gated run above ends its two-digit targets on one fixed number, so the next lever
-# to try is exploration at the digits (larger groups for the prompts whose group has no spread),
-# not another shape of the credit.
+# settled. The two-digit targets show what neither credit taught: in eight of
+# the nine gated runs and nine of the
+# nine counted runs, at least 75% of the two-digit
+# targets held out get replies with one and the same digit sum, whatever the target (most often
+# 10, in ten of those
+# 17 runs). The policy does not tell the two-digit targets apart under either
+# credit, so the next lever to try is exploration at the digits (larger groups for the prompts
+# whose group has no spread), not another shape of the credit.
 #
 # What the gated policies write held out, per target digit sum (greedy; the most frequent reply
 # and its digit sum):
@@ -1295,13 +1320,13 @@ for reply, digit_target in [("That's a pretty inspiring story.", 10),
 # |---|---|---|---|---|---|---|---|---|---|---|
 # | 3 | 3 of 6 | `3. How to Tell A Night Of Dreams` (3) | 0 of 3 | `Continue exactly 3 characters .` (3) | 4 of 4 | `3 amazing delicious meals worth.` (3) | 0 of 7 | `4 characters (space not needed)` (4) | 7 of 7 | `3ortunately that was exactly it.` (3) |
 # | 4 | 0 of 7 | `4. How To Tell A Star From A Night` (4) | 0 of 8 | `Continue exactly 4 characters .` (4) | 11 of 12 | `4 amazing delicious meals worth.` (4) | 0 of 9 | `4 characters (Space Not Too Long)` (4) | 4 of 4 | `4ortunately that was exactly it.` (4) |
-# | 5 | 0 of 3 | `5. How To Solve The Stars Of Dark.` (5) | 0 of 7 | `Continue exactly 5 characters .` (5) | 7 of 7 | `5 amazing delicious meals worth.` (5) | 0 of 7 | `4 characters (space not needed)` (4) | 11 of 11 | `5ortunately that was exactly it.` (5) |
+# | 5 | 0 of 3 | `5. How To Solve The Stars Of Dark.` (5; tied with 2 others at 1 each) | 0 of 7 | `Continue exactly 5 characters .` (5) | 7 of 7 | `5 amazing delicious meals worth.` (5) | 0 of 7 | `4 characters (space not needed)` (4) | 11 of 11 | `5ortunately that was exactly it.` (5) |
 # | 6 | 0 of 4 | `6. How To Solve The Stars Of Dark` (6) | 0 of 7 | `Continue exactly 6 characters .` (6) | 6 of 6 | `6 amazing delicious meals worth.` (6) | 0 of 4 | `4 characters (space not needed)` (4) | 8 of 8 | `6ortunately that was exactly it.` (6) |
-# | 7 | 0 of 5 | `7. How to Tell A Night Of Love` (7) | 0 of 10 | `Continue exactly 7 characters .` (7) | 4 of 4 | `7 amazing delicious meals worth.` (7) | 0 of 6 | `44 characters (space not needed)` (8) | 7 of 7 | `7ortunately that was exactly it.` (7) |
+# | 7 | 0 of 5 | `7. How to Tell A Night Of Love` (7; tied with 4 others at 1 each) | 0 of 10 | `Continue exactly 7 characters .` (7) | 4 of 4 | `7 amazing delicious meals worth.` (7) | 0 of 6 | `44 characters (space not needed)` (8) | 7 of 7 | `7ortunately that was exactly it.` (7) |
 # | 8 | 3 of 7 | `8. How To Solve The Darkest Night.` (8) | 0 of 4 | `Continue exactly 8 characters .` (8) | 5 of 5 | `8 amazing delicious meals worth.` (8) | 6 of 9 | `44 characters (space not needed)` (8) | 5 of 5 | `8ortunately that was exactly it.` (8) |
-# | 9 | 2 of 7 | `9. How To Solve The Darkest Night.` (9) | 0 of 4 | `Continue exactly 9 characters .` (9) | 11 of 11 | `9 amazing delicious meals worth.` (9) | 0 of 5 | `44 characters (space not needed)` (8) | 2 of 2 | `9ortunately that was exactly it.` (9) |
+# | 9 | 2 of 7 | `9. How To Solve The Darkest Night.` (9; tied with 1 other at 2 each) | 0 of 4 | `Continue exactly 9 characters .` (9) | 11 of 11 | `9 amazing delicious meals worth.` (9) | 0 of 5 | `44 characters (space not needed)` (8) | 2 of 2 | `9ortunately that was exactly it.` (9) |
 # | 10 | 1 of 8 | `1234 Invisible Antique Antique Antique.` (10) | 0 of 8 | `Continue exactly 66 characters .` (12) | 0 of 6 | `1433 words worth of text edited.` (11) | 0 of 6 | `44 characters (space not needed)` (8) | 0 of 9 | `19ortunately that was exactly it.` (10) |
-# | 11 | 0 of 7 | `1234 Invisible Nightmares Over The Sea.` (10) | 0 of 9 | `Continue exactly 66 characters .` (12) | 3 of 3 | `1433 words worth of text edited.` (11) | 0 of 5 | `4 characters (space not needed)` (4) | 0 of 6 | `19ortunately that was exactly it.` (10) |
+# | 11 | 0 of 7 | `1234 Invisible Nightmares Over The Sea.` (10; tied with 1 other at 2 each) | 0 of 9 | `Continue exactly 66 characters .` (12) | 3 of 3 | `1433 words worth of text edited.` (11) | 0 of 5 | `4 characters (space not needed)` (4; tied with 1 other at 2 each) | 0 of 6 | `19ortunately that was exactly it.` (10) |
 # | 12 | 0 of 10 | `1234 The Greatest Ever.` (10) | 4 of 4 | `Continue exactly 66 characters .` (12) | 0 of 6 | `1433 words worth of text edited.` (11) | 0 of 6 | `44 characters (space not needed)` (8) | 0 of 5 | `19ortunately that was exactly it.` (10) |
 
 # %% [markdown]

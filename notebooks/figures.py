@@ -690,6 +690,49 @@ def _check_gated_pairs(stage: str) -> None:
             raise ValueError(f"lesson 7, 6.8's pairs both ran in bf16 on one CPU: {gated_run.name} {machines}")
 
 
+# both runs of a pair ran on one machine; wall times within this ratio of each other say so
+# (the two machines behind 6.8's fresh seeds differ by almost 2x)
+SAME_MACHINE_SECONDS = 1.25
+BF16_UNITS_WORDS = {"AMX": "AMX", "AVX512-BF16": "AVX512-BF16 and no AMX", "none": "no bf16 units"}
+
+
+def gated_fresh_machines() -> dict[str, str]:
+    """Which machine each fresh pair of 6.8 ran on (results/gated/fresh/machines.json, written
+    from the session logs: the runs predate summary.json's 'cpu'), checked against what the runs
+    themselves say: a summary's 'cpu' where it has one, and wall times (both runs of a pair, and
+    all runs listed on one machine, within SAME_MACHINE_SECONDS of each other)."""
+    pairs = gated_pair_runs("fresh")   # refuses a pair with a run missing before anything else
+    listed = {int(seed): m for seed, m in _json("gated/fresh/machines.json")["seeds"].items()}
+    if set(listed) != set(GATED_FRESH_SEEDS):
+        raise ValueError(f"lesson 7, 6.8 names the machine of every fresh pair: machines.json lists "
+                         f"seeds {sorted(listed)}, not {list(GATED_FRESH_SEEDS)}")
+    seconds, by_machine = {}, collections.defaultdict(list)
+    for seed, *runs in zip(GATED_FRESH_SEEDS, *pairs):
+        summaries = [_json(f"{_relative(r)}/summary.json") for r in runs]
+        for run, summary in zip(runs, summaries):
+            if "cpu" in summary and summary["cpu"] != listed[seed]:
+                raise ValueError(f"lesson 7, 6.8 says {run.name} ran on {listed[seed]}; it says {summary['cpu']}")
+        pair = [s["seconds"] for s in summaries]
+        if max(pair) > SAME_MACHINE_SECONDS * min(pair):
+            raise ValueError(f"lesson 7, 6.8 says both runs of seed {seed}'s pair ran on one machine; "
+                             f"their wall times differ: {pair}")
+        seconds[seed] = statistics.mean(pair)
+        by_machine[(listed[seed]["model"], listed[seed]["bf16_units"])].append(seed)
+    for seeds in by_machine.values():
+        times = [seconds[s] for s in seeds]
+        if max(times) > SAME_MACHINE_SECONDS * min(times):
+            raise ValueError(f"lesson 7, 6.8 says seeds {seeds} ran on one machine; their wall times differ: {times}")
+    if len(by_machine) != 2:
+        raise ValueError(f"lesson 7, 6.8 says the fresh pairs ran on two machines: {dict(by_machine)}")
+    (fast, fast_seeds), (slow, slow_seeds) = sorted(by_machine.items(), key=lambda m: seconds[m[1][0]])
+    def named(machine: tuple[str, str], seeds: list[int]) -> str:
+        return f"seed{'s' if len(seeds) > 1 else ''} {_seeds(seeds)} on an {machine[0]} with {BF16_UNITS_WORDS[machine[1]]}"
+    ratio = statistics.mean(seconds[s] for s in slow_seeds) / statistics.mean(seconds[s] for s in fast_seeds)
+    return {"gated.fresh_machines": f"{named(fast, fast_seeds)}, {named(slow, slow_seeds)}",
+            "gated.same_machine": f"{SAME_MACHINE_SECONDS:g}",
+            "gated.fresh_slow_seeds": _seeds(slow_seeds), "gated.fresh_machine_seconds_ratio": f"{ratio:.1f}"}
+
+
 # 6.8 counts a run as a template run when it passes at least this share of its one-digit
 # targets held out (6.7's template runs pass all of them, the others few: tests/test_figures.py
 # checks that no stored run falls near the line)
@@ -726,11 +769,48 @@ def _ends(runs: list[Path]) -> list[str | None]:
     return ends
 
 
+# a run "settles" on a frame when one frame (the reply with its digits taken out) is written for
+# more than half the held-out prompts; two-digit targets "end on one digit sum" when at least
+# this share of their replies have one and the same digit sum
+ONE_SUM_SHARE = 0.75
+
+
+def _frame(reply: str) -> str:
+    return re.sub(r"\d", "", reply.strip())
+
+
+def _settled_frame(samples: list[dict]) -> tuple[str, int] | None:
+    """The frame a run wrote for most held-out prompts, with how many; None if no frame was."""
+    frame, count = collections.Counter(_frame(x["completion"]) for x in samples).most_common(1)[0]
+    return (frame, count) if 2 * count > len(samples) else None
+
+
+def _two_digit_sum(samples: list[dict]) -> tuple[int, float]:
+    """The digit sum most two-digit targets' replies have, and the share of them that have it."""
+    sums = [x["digit_sum"] for x in samples if x["target_digit_sum"] >= 10]
+    top, count = collections.Counter(sums).most_common(1)[0]
+    return top, count / len(sums)
+
+
+def _fixed_number(label: str, run: Path, samples: list[dict]) -> str:
+    """'gated seed 24 writes "..." (digit sum 8) for 32 of 64 prompts': the one sentence with a
+    fixed number that a length-first run wrote for most prompts (refused if it did not)."""
+    from course_utils import rewards
+
+    reply, count = collections.Counter(x["completion"] for x in samples).most_common(1)[0]
+    top = rewards.check(reply, samples[0]["target_chars"], 0)
+    if not top.n_digits or not top.length_ok or 2 * count < len(samples):
+        raise ValueError(f"lesson 7, 6.8 says {run.name} writes one sentence of the right length with "
+                         f"a fixed number for most prompts: {reply!r} {count} times")
+    seed = _json(f"{_relative(run)}/config.json")["seed"]
+    return f'{label} seed {seed} writes "{reply}" (digit sum {top.digit_sum}) for {count} of {len(samples)} prompts'
+
+
 def gated_figures() -> dict[str, str]:
     """Lesson 7, 6.8, and the README: the gated credit against the counted one, paired by seed."""
     from course_utils import ablation, rewards, stats
 
-    figs, greedy = {}, {}   # greedy: each run's held-out greedy results, read once
+    figs, greedy = gated_fresh_machines(), {}   # greedy: each run's held-out greedy results, read once
     for stage in ("tuning", "fresh"):
         _check_gated_pairs(stage)
         gated, counted = gated_pair_runs(stage)
@@ -749,6 +829,9 @@ def gated_figures() -> dict[str, str]:
                      f"gated.{stage}_{arm}_two_mean":
                          f"{statistics.mean(after[r]['pass_both_two_digit'] for r in runs):.1%}",
                      f"gated.{stage}_{arm}_templates": _word(ends.count(None)),
+                     f"gated.{stage}_{arm}_n_template": f"{ends.count(None)}",
+                     f"gated.{stage}_{arm}_n_length": f"{ends.count('length')}",
+                     f"gated.{stage}_{arm}_n_digits": f"{ends.count('digits')}",
                      f"gated.{stage}_{arm}_length_first": _word(ends.count("length")),
                      f"gated.{stage}_{arm}_digits_first": _word(ends.count("digits")),
                      f"gated.{stage}_{arm}_two_sampled": _seeds(sampled_two)}
@@ -763,22 +846,13 @@ def gated_figures() -> dict[str, str]:
     arms = {arm: pairs["tuning"][i] + pairs["fresh"][i] for i, arm in enumerate(("gated", "counted"))}
     ends = {arm: _ends(runs) for arm, runs in arms.items()}
     free = {arm: [r for r in runs if _digit_free(r)] for arm, runs in arms.items()}
-    if free["gated"] or not free["counted"]:
-        raise ValueError(f"lesson 7, 6.8 says no gated run ended on replies without a digit and a counted "
-                         f"run did: {({arm: [r.name for r in runs] for arm, runs in free.items()})}")
+    fresh_free = [r for arm in pairs["fresh"] for r in arm if _digit_free(r)]
+    if free["gated"] or not free["counted"] or fresh_free:
+        raise ValueError(f"lesson 7, 6.8 says no gated run and no fresh run ended on replies without a digit, "
+                         f"and a counted screen run did: {({arm: [r.name for r in runs] for arm, runs in free.items()})}")
     fixed = [(arm, r) for arm, runs in arms.items() for r, end in zip(runs, ends[arm])
              if end == "length" and r not in free[arm]]
-    examples = []
-    for arm, run in fixed:
-        samples = greedy[run]["samples"]
-        reply, count = collections.Counter(x["completion"] for x in samples).most_common(1)[0]
-        top = rewards.check(reply, samples[0]["target_chars"], 0)
-        if not top.n_digits or not top.length_ok or 2 * count < len(samples):
-            raise ValueError(f"lesson 7, 6.8 says {run.name} writes one sentence of the right length with "
-                             f"a fixed number for most prompts: {reply!r} {count} times")
-        config = _json(f"{_relative(run)}/config.json")
-        examples.append(f'{arm} seed {config["seed"]} writes "{reply}" (digit sum {top.digit_sum}) '
-                        f'for {count} of {len(samples)} prompts')
+    examples = [_fixed_number(arm, run, greedy[run]["samples"]) for arm, run in fixed]
     if not any(arm == "gated" for arm, _ in fixed):
         raise ValueError("lesson 7, 6.8 says a gated run ended length first on a fixed number")
     fresh = {arm: [greedy[r]["pass_both"] for r in runs] for arm, runs in zip(("gated", "counted"), pairs["fresh"])}
@@ -786,13 +860,56 @@ def gated_figures() -> dict[str, str]:
         raise ValueError("lesson 7, 6.8 says the template did not become the likely path on fresh seeds")
     if any(statistics.mean(p) >= SHIP_MEAN and min(p) >= SHIP_WORST for p in fresh.values()):
         raise ValueError(f"lesson 7, 6.8 says neither recipe met the bar on fresh seeds: {fresh}")
-    # the table of ends in 6.8, in digits
-    figs |= {f"gated.{arm}_{end}_first": f"{ends[arm].count(end)}" for arm in ends for end in ("length", "digits")}
-    figs |= {f"gated.{arm}_templates": f"{ends[arm].count(None)}" for arm in ends}
+    # the same form in 6.7's fp32 runs, before the gate existed
+    fp32 = precision_pair_runs()[0]
+    earlier = [_fixed_number("fp32", r, _json(f"{_relative(r)}/summary.json")["after"]["greedy"]["samples"])
+               for r, end in zip(fp32, _ends(fp32)) if end == "length" and not _digit_free(r)]
+    if not earlier:
+        raise ValueError("lesson 7, 6.8 says one of 6.7's fp32 runs already ended on a fixed-number sentence")
+    # the gated runs that ended digits first: which settled on one frame, and how long it is
+    # with a one-digit number (a template one character short is the one 6.8 names)
+    digits_first = [r for r, end in zip(arms["gated"], ends["gated"]) if end == "digits"]
+    settled = {r: _settled_frame(greedy[r]["samples"]) for r in digits_first}
+    unsettled = [_json(f"{_relative(r)}/config.json")["seed"] for r, frame in settled.items() if frame is None]
+    short = []
+    for run, frame in settled.items():
+        if frame is None:
+            continue
+        one_digit = [x for x in greedy[run]["samples"] if _frame(x["completion"]) == frame[0] and x["target_digit_sum"] < 10]
+        lengths = {x["n_chars"] for x in one_digit}
+        if lengths != {31}:   # one short of the 32 characters asked
+            raise ValueError(f"lesson 7, 6.8 says {run.name} settled on a frame one character short with a "
+                             f"one-digit number: lengths {lengths}")
+        reply = collections.Counter(x["completion"].strip() for x in one_digit).most_common(1)[0][0]
+        short.append(f'seed {_json(f"{_relative(run)}/config.json")["seed"]} wrote one frame for {frame[1]} of '
+                     f'{len(greedy[run]["samples"])} prompts ("{reply}" for a one-digit target)')
+    if not unsettled or not short:
+        raise ValueError(f"lesson 7, 6.8 says of the gated digits-first runs some never settled on a frame "
+                         f"and one settled on a frame one character short: {settled}")
+    # two-digit targets: in most runs of either arm, their replies share one digit sum
+    one_sum = {arm: [_two_digit_sum(greedy[r]["samples"]) for r in runs] for arm, runs in arms.items()}
+    one_sum_runs = {arm: [total for total, share in v if share >= ONE_SUM_SHARE] for arm, v in one_sum.items()}
+    if any(2 * len(v) <= len(arms[arm]) for arm, v in one_sum_runs.items()):
+        raise ValueError(f"lesson 7, 6.8 says most runs of both arms end their two-digit targets on one "
+                         f"digit sum: {one_sum}")
+    common, common_count = collections.Counter(sum(one_sum_runs.values(), [])).most_common(1)[0]
+    figs |= {"gated.digits_first_runs": _word(len(digits_first)),
+             "gated.digits_first_unsettled": f"seed{'s' if len(unsettled) > 1 else ''} {_seeds(unsettled)}",
+             "gated.digits_first_short": "; ".join(short), "gated.digits_first_short_chars": "31",
+             "gated.precision_fixed_number": "; ".join(earlier),
+             "gated.one_sum_share": f"{ONE_SUM_SHARE:.0%}",
+             "gated.one_sum_gated": _word(len(one_sum_runs["gated"])),
+             "gated.one_sum_counted": _word(len(one_sum_runs["counted"])),
+             "gated.one_sum_common": f"{common}", "gated.one_sum_common_runs": _word(common_count),
+             "gated.one_sum_all_runs": _word(sum(map(len, one_sum_runs.values())))}
     figs |= {f"gated.{arm}_runs": _word(len(runs)) for arm, runs in arms.items()}
     figs |= {"gated.counted_digit_free": _word(len(free["counted"])),
              "gated.fixed_number_examples": "; ".join(examples)}
+    # a reply one character off with the right digit: the two credits agree wherever the digits
+    # are right (D = 1), so the gate changes nothing for a near miss of that kind
     one_off = rewards.check("x" * 30 + "7", 32, 7)
+    if rewards.gated_score(one_off, 32, 7) != rewards.counted_score(one_off, 32, 7):
+        raise ValueError("lesson 7, 6.8 says both credits pay a reply with the right digits alike")
     figs |= {"gated.one_off": f"{rewards.gated_score(one_off, 32, 7):.2f}",
          "gated.template_share": f"{TEMPLATE_ONE_DIGIT:.0%}", "gated.bar_mean": f"{SHIP_MEAN:.0%}", "gated.bar_worst": f"{SHIP_WORST:.0%}"}
     # 6.7's eight runs by how they ended, and the length-first dead end: its reply, what each
@@ -814,17 +931,23 @@ def gated_figures() -> dict[str, str]:
     steps = ablation.records(dead)
     config = _json(f"{_relative(dead)}/config.json")
     batch = config["prompts_per_step"] * config["group_size"]
+    # the right digit sum was as rare before the length was learned as after: the digit half of
+    # the credit gave this run almost no signal from the start
     length_step = next(x["step"] for x in steps if x["pass_length"] >= 0.5)
+    earlier_steps = [x for x in steps if x["step"] < length_step]
     later = [x for x in steps if x["step"] >= length_step]
+    early_hits = sum(round(x["pass_digits"] * batch) for x in earlier_steps)
     digit_hits = sum(round(x["pass_digits"] * batch) for x in later)
-    if digit_hits > 0.01 * batch * len(later):
-        raise ValueError(f"lesson 7, 6.8 says {dead.name} almost never sampled the right digit sum "
-                         f"once it had learned the length: {digit_hits} times")
+    if digit_hits > 0.01 * batch * len(later) or early_hits > 0.01 * batch * len(earlier_steps):
+        raise ValueError(f"lesson 7, 6.8 says {dead.name} almost never sampled the right digit sum, "
+                         f"before or after it learned the length: {early_hits} and {digit_hits} times")
     return figs | {"gated.dead_end": sample["completion"], "gated.dead_end_literal": repr(sample["completion"]),
                    "gated.dead_end_seed": f"{config['seed']}", "gated.dead_end_sum": f"{targets[1]}",
                    "gated.dead_end_length_step": f"{length_step}",
                    "gated.dead_end_steps": f"{len(steps)}", "gated.dead_end_digit_hits": f"{digit_hits}",
                    "gated.dead_end_later_samples": f"{batch * len(later):,}",
+                   "gated.dead_end_early_hits": f"{early_hits}",
+                   "gated.dead_end_early_samples": f"{batch * len(earlier_steps):,}",
                    "gated.dead_end_counted": f"{rewards.counted_score(result, *targets):.2f}",
                    "gated.dead_end_gated": f"{rewards.gated_score(result, *targets):.2f}"}
 

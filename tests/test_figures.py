@@ -570,7 +570,7 @@ def test_the_gated_figures_refuse_a_verdict_the_fresh_seeds_stop_supporting(monk
             data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": samples}}}
         return data
     monkeypatch.setattr(figures, "_json", digit_free)
-    with pytest.raises(ValueError, match="no gated run ended on replies without a digit"):
+    with pytest.raises(ValueError, match="no gated run and no fresh run ended on replies without a digit"):
         figures.gated_figures()
     # the gated run that ended length first, with its replies all different: no fixed sentence
     def scattered(rel):
@@ -582,4 +582,98 @@ def test_the_gated_figures_refuse_a_verdict_the_fresh_seeds_stop_supporting(monk
         return data
     monkeypatch.setattr(figures, "_json", scattered)
     with pytest.raises(ValueError, match="a fixed number for most prompts"):
+        figures.gated_figures()
+
+
+def _with_samples(real, rel_summary, change):
+    """figures._json with the held-out greedy samples of one summary passed through ``change``."""
+    def changed(rel):
+        data = real(rel)
+        if rel == rel_summary:
+            greedy = data["after"]["greedy"]
+            data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": change(greedy["samples"])}}}
+        return data
+    return changed
+
+
+@pytest.mark.parametrize("file, changes, mistake", [
+    # a fresh seed with no machine named
+    ("gated/fresh/machines.json", lambda d: {**d, "seeds": {k: v for k, v in d["seeds"].items() if k != "25"}},
+     "names the machine of every fresh pair"),
+    # a run that records another machine than the file names for its pair
+    ("gated/fresh/gated-seed21/summary.json",
+     lambda d: {**d, "cpu": {"model": "AMD EPYC", "bf16_units": "AVX512-BF16"}}, "ran on"),
+    # one run of a pair twice as slow as its twin: not one machine
+    ("gated/fresh/gated-seed21/summary.json", lambda d: {**d, "seconds": 2 * d["seconds"]},
+     "both runs of seed 21's pair ran on one machine"),
+    # every pair on one machine: 6.8 says two
+    ("gated/fresh/machines.json", lambda d: {**d, "seeds": {k: d["seeds"]["21"] for k in d["seeds"]}},
+     "ran on one machine; their wall times differ"),
+])
+def test_the_gated_figures_refuse_machines_the_runs_contradict(monkeypatch, file, changes, mistake):
+    assert figures.gated_fresh_machines()["gated.fresh_machines"].startswith("seeds 21, 22, 23 and 24 on an Intel Xeon")
+    real = figures._json
+    monkeypatch.setattr(figures, "_json", lambda rel: changes(real(rel)) if rel == file else real(rel))
+    with pytest.raises(ValueError, match=mistake):
+        figures.gated_figures()
+
+
+def test_the_gated_figures_refuse_a_dead_end_that_sampled_digits_before_the_length(monkeypatch):
+    """6.8 says seed 18's bf16 run almost never sampled the right digit sum before it learned the
+    length either (at most 1% of its sampled replies then)."""
+    rel = "precision-pairs/punished-bf16-seed18"
+    steps = [json.loads(line) for line in (figures.RESULTS / rel / "metrics.jsonl").read_text().splitlines()]
+    from course_utils import ablation
+    real = ablation.records
+    early = [{**x, "pass_digits": 0.25} if x["pass_length"] < 0.5 and x["step"] < 31 else x for x in steps]
+    monkeypatch.setattr(ablation, "records", lambda run: early if str(run).endswith(rel) else real(run))
+    with pytest.raises(ValueError, match="before or after it learned the length: [1-9]"):
+        figures.gated_figures()
+
+
+def test_the_gated_figures_refuse_endings_the_runs_stop_supporting(monkeypatch):
+    """What 6.8 says of how the runs ended, each altered in the stored files until its check fires."""
+    real = figures._json
+    # a fresh control whose replies hold no digit: 6.8 says no fresh run of either arm did
+    monkeypatch.setattr(figures, "_json", _with_samples(
+        real, "gated/fresh/punished-seed23/summary.json",
+        lambda samples: [{**x, "completion": "Nothing but words in this reply."} for x in samples]))
+    with pytest.raises(ValueError, match="no fresh run ended on replies without a digit"):
+        figures.gated_figures()
+    # 6.7's fp32 seed-18 run a template run: no fixed-number sentence before the gate
+    monkeypatch.setattr(figures, "_json", _lifted_after(real, {"punished-fp32-seed18"}, pass_both_one_digit=1.0))
+    with pytest.raises(ValueError, match="already ended on a fixed-number sentence"):
+        figures.gated_figures()
+    # gated seed 22's frame 32 characters with a one-digit number: not one character short
+    monkeypatch.setattr(figures, "_json", _with_samples(
+        real, "gated/fresh/gated-seed22/summary.json",
+        lambda samples: [{**x, "n_chars": 32} for x in samples]))
+    with pytest.raises(ValueError, match="one character short"):
+        figures.gated_figures()
+    # gated seed 22's replies all different: every digits-first gated run unsettled
+    monkeypatch.setattr(figures, "_json", _with_samples(
+        real, "gated/fresh/gated-seed22/summary.json",
+        lambda samples: [{**x, "completion": f"{'ab' * i}{x['completion']}"} for i, x in enumerate(samples)]))
+    with pytest.raises(ValueError, match="one settled on a frame one character short"):
+        figures.gated_figures()
+    # every gated run's two-digit replies with the target's own digit sum: no one fixed sum
+    gated = [r for stage in ("tuning", "fresh") for r in figures.gated_pair_runs(stage)[0]]
+    def spread(rel):
+        data = real(rel)
+        if rel.endswith("summary.json") and rel.split("/")[-2] in {r.name for r in gated}:
+            greedy = data["after"]["greedy"]
+            samples = [{**x, "digit_sum": x["target_digit_sum"]} for x in greedy["samples"]]
+            data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": samples}}}
+        return data
+    monkeypatch.setattr(figures, "_json", spread)
+    with pytest.raises(ValueError, match="end their two-digit targets on one digit sum"):
+        figures.gated_figures()
+
+
+def test_the_gated_figures_refuse_a_credit_that_pays_right_digits_differently(monkeypatch):
+    """6.8 says a near miss with the right digits earns the same under both credits (D = 1)."""
+    from course_utils import rewards
+    real = rewards.gated_score
+    monkeypatch.setattr(rewards, "gated_score", lambda *a: 0.99 * real(*a))
+    with pytest.raises(ValueError, match="pay a reply with the right digits alike"):
         figures.gated_figures()

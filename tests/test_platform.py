@@ -71,3 +71,30 @@ def test_requires_python_is_the_python_the_readme_states():
     low = re.search(r'requires-python = ">=3\.(\d+)"', pyproject)
     assert low and sys.version_info >= (3, int(low.group(1)))
     assert f"Python 3.{low.group(1)} or newer" in (ROOT / "README.md").read_text()
+
+
+@pytest.mark.parametrize("amx, flags, units", [
+    (True, {"avx512_bf16", "amx_bf16"}, "AMX"),
+    (False, {"avx512_bf16", "avx512f"}, "AVX512-BF16"),   # an AMD EPYC (Zen 4): no AMX
+    (False, {"avx2", "fma"}, "none"),                       # a laptop, or Colab's CPU runtime
+])
+def test_the_summary_names_the_bf16_units_the_capability_cannot_tell_apart(monkeypatch, amx, flags, units):
+    """torch's get_cpu_capability() says 'AVX512' on an AMX Xeon and on an AMD EPYC alike; a bf16
+    run's arithmetic differs between them, so summary.json records cpu.machine() as well."""
+    import platform
+
+    import torch
+
+    from course_utils import cpu
+    monkeypatch.setattr(platform, "machine", lambda: "x86_64")
+    monkeypatch.setattr(torch._C._cpu, "_init_amx", lambda: amx, raising=False)
+    monkeypatch.setattr(cpu, "_cpu_flags", lambda: flags)
+    cpu.bf16_units.cache_clear()
+    try:
+        assert cpu.bf16_units() == units and cpu.native_bf16() == (units != "none")
+        assert cpu.machine()["bf16_units"] == units and cpu.machine()["model"]
+    finally:
+        cpu.bf16_units.cache_clear()
+    monkeypatch.setattr(platform, "machine", lambda: "arm64")
+    assert cpu.bf16_units() == "none"
+    cpu.bf16_units.cache_clear()

@@ -137,6 +137,20 @@ def test_completions_by_target_labels_its_groups_and_keeps_a_reply_in_its_cell(t
         ablation.completions_by_target(runs[:1], ["control", "punished"])
 
 
+def test_completions_by_target_says_when_the_most_frequent_completion_is_a_tie(tmp_path):
+    after = {"pass_both": 0.0, "pass_both_one_digit": 0.0, "pass_both_two_digit": 0.0,
+             "distinct_completions": 3}
+    samples = [sample("19", 10), sample("28", 10), sample("37", 10), sample("37", 10), sample("3", 3),
+               sample("4", 3)]
+    run = probe_run(tmp_path, "t", {"seed": 1}, "fp32", [0.0], [5.0], samples, after)
+    rows = ablation.completions_by_target([run]).splitlines()
+    assert rows[2].endswith("| `3` (3; tied with 1 other at 1 each) |")    # first in prompt order
+    assert rows[3].endswith("| `37` (10) |")                                # a clear winner: no mark
+    three = [sample("1", 3), sample("2", 3), sample("12", 3)]
+    run = probe_run(tmp_path, "u", {"seed": 1}, "fp32", [0.0], [5.0], three, after)
+    assert "tied with 2 others at 1 each" in ablation.completions_by_target([run])
+
+
 def logged_run(folder, name: str, steps: list[tuple[float, int, int]], **config):
     """A run whose log has, per step, pass_both, samples_two_digit and passes_two_digit."""
     run = folder / name

@@ -9,7 +9,7 @@ import time
 import pytest
 import torch
 
-from course_utils import checkpoint, train
+from course_utils import checkpoint, cpu, train
 from course_utils.config import load_config
 from course_utils.data import Prompt
 
@@ -36,6 +36,9 @@ def test_main_job_smoke_writes_a_complete_run(tmp_path):
         assert key in records[0]
     assert records[0]["adv_std"] > 0  # the smoke preset must exercise a real update
     assert "| mean reward |" in proc.stdout and "before (sampled)" in proc.stdout
+    # which machine it ran on: the capability alone does not tell AMX from AVX512-BF16 (6.8)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["cpu"] == cpu.machine() and summary["cpu"]["model"]
 
 
 def test_bad_config_fails_fast_with_the_field_named():

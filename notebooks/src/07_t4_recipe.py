@@ -927,11 +927,13 @@ else:
 # prompt: exactly 32 characters and no digit. Against a target of {{fig:gated.dead_end_sum}} the
 # counted credit pays it {{fig:gated.dead_end_counted}}, the whole of its length half. Better
 # replies were close: for a one-digit target, one letter swapped for the right digit passes
-# outright. The policy hardly ever wrote one. Half its sampled replies had the right length by
-# step {{fig:gated.dead_end_length_step}}, and from then to step {{fig:gated.dead_end_steps}} only
-# {{fig:gated.dead_end_digit_hits}} of its {{fig:gated.dead_end_later_samples}} sampled replies
-# had the right digit sum. The length half of the credit can be climbed with no digit at all,
-# and this run climbed it; after that, what it sampled almost never pointed at a digit.
+# outright. The policy hardly ever sampled one, and not only once it had learned the length:
+# {{fig:gated.dead_end_early_hits}} of its {{fig:gated.dead_end_early_samples}} sampled replies had the
+# right digit sum before the share with the right length first reached half (step
+# {{fig:gated.dead_end_length_step}}), and {{fig:gated.dead_end_digit_hits}} of
+# {{fig:gated.dead_end_later_samples}} from then to step {{fig:gated.dead_end_steps}}. The digit half
+# of the credit gave this run almost no signal from the start, while the length half can be
+# climbed with no digit at all, and this run climbed it.
 #
 # The change is to make the length pay only through the digits (`rewards.gated_score`):
 #
@@ -972,7 +974,16 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 #
 # Then, with nothing changed, on fresh seeds {{fig:gated.fresh_seed_list}} that chose nothing,
 # each seed's gated run beside a control, the punished recipe. The build checks that the runs of
-# a pair differ in `reward` alone and ran in bf16 on the same CPU capability:
+# a pair differ in `reward` alone and ran in bf16 on the same CPU capability. Both runs of a pair
+# ran on one machine, one after the other, but not every pair on the same machine:
+# {{fig:gated.fresh_machines}} (`results/gated/fresh/machines.json`, written from the session logs:
+# these runs predate the `cpu` field that `summary.json` now records, and torch's capability
+# reads "AVX512" on both). The wall times agree with that file, and the build checks them: the
+# runs of each pair within {{fig:gated.same_machine}}x of each other, and seed
+# {{fig:gated.fresh_slow_seeds}}'s pair about {{fig:gated.fresh_machine_seconds_ratio}}x as long as the
+# others. The kind of bf16 unit can change a bf16 run's rounding, and section 6.7 showed how far a change
+# of rounding can move a run. So the machine adds to the spread between seeds; it is the same
+# for both runs of a pair, so it does not enter a pair's difference.
 #
 # {{GATED_FRESH}}
 #
@@ -984,24 +995,33 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 # line under the table. Of the fresh runs, {{fig:gated.fresh_gated_templates}} gated and
 # {{fig:gated.fresh_counted_templates}} counted found the template.
 #
-# **How the runs ended**, over both stages ({{fig:gated.gated_runs}} runs per arm; `figures.dead_end`):
+# **How the runs ended** (`figures.dead_end`), per stage:
 #
 # | | template | length first | digits first |
 # |---|---|---|---|
-# | gated | {{fig:gated.gated_templates}} | {{fig:gated.gated_length_first}} | {{fig:gated.gated_digits_first}} |
-# | counted | {{fig:gated.counted_templates}} | {{fig:gated.counted_length_first}} | {{fig:gated.counted_digits_first}} |
+# | gated, screen (seeds {{fig:gated.tuning_seed_list}}) | {{fig:gated.tuning_gated_n_template}} | {{fig:gated.tuning_gated_n_length}} | {{fig:gated.tuning_gated_n_digits}} |
+# | gated, fresh (seeds {{fig:gated.fresh_seed_list}}) | {{fig:gated.fresh_gated_n_template}} | {{fig:gated.fresh_gated_n_length}} | {{fig:gated.fresh_gated_n_digits}} |
+# | counted, screen | {{fig:gated.tuning_counted_n_template}} | {{fig:gated.tuning_counted_n_length}} | {{fig:gated.tuning_counted_n_digits}} |
+# | counted, fresh | {{fig:gated.fresh_counted_n_template}} | {{fig:gated.fresh_counted_n_length}} | {{fig:gated.fresh_counted_n_digits}} |
 #
-# No gated run ended on replies without a digit, the end the gate was built against; among the
-# counted runs {{fig:gated.counted_digit_free}} did, seed {{fig:gated.dead_end_seed}}'s, an end too
-# rare in {{fig:gated.counted_runs}} runs for these seeds to say the gate prevents it. And the
-# length-first end has a second form that the gate leaves open: one sentence of the
-# right length with one fixed number in it ({{fig:gated.fixed_number_examples}}). Where its
-# digits are right that sentence passes, and near there the gate still pays a part of it (the
-# cell above prints one such sentence against its own digit sum and one two above it): a reply
-# the policy can settle on for every prompt, with no digit-free reply needed. The gated runs that failed
-# otherwise ended digits first, with the right digits and a length that never settled (the last
-# table shows what each writes); a reply one character off with the right digit still earns a
-# gated score of {{fig:gated.one_off}}, a near miss that leaves little spread in a group.
+# No gated run ended on replies without a digit, the end the gate was built against. Of the
+# {{fig:gated.counted_runs}} counted runs {{fig:gated.counted_digit_free}} did, seed
+# {{fig:gated.dead_end_seed}}'s in the screen, and on the fresh seeds neither arm did: an end too
+# rare here for these seeds to say the gate prevents it. The length-first end has a second form
+# that the gate leaves open: one sentence of the right length with one fixed number in it
+# ({{fig:gated.fixed_number_examples}}). The form is older than the gate; in section 6.7,
+# {{fig:gated.precision_fixed_number}}. Where its digits are right that sentence passes, and near
+# there the gate still pays a part of it (the cell above prints one such sentence against its own
+# digit sum and one two above it): a reply the policy can settle on for every prompt, with no
+# digit-free reply needed.
+#
+# Of the {{fig:gated.digits_first_runs}} gated runs that ended digits first,
+# {{fig:gated.digits_first_unsettled}} never settled on one frame (the reply with its digits taken
+# out: no frame was written for more than half the prompts), and {{fig:gated.digits_first_short}}:
+# a frame {{fig:gated.digits_first_short_chars}} characters long with a one-digit number, a template one character short of the
+# one-digit targets. A reply one character off with the right digits earns
+# {{fig:gated.one_off}} under either credit: the two agree wherever the digits are right
+# (D = 1), so the gate changes nothing for near misses of that kind.
 # Two-digit passes sampled in training, per fresh seed: {{fig:gated.fresh_gated_two_sampled}} for
 # gated, {{fig:gated.fresh_counted_two_sampled}} for counted.
 #
@@ -1011,9 +1031,14 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 # {{fig:gated.bar_worst}}), so the presets stay as they are. What this points to: a partial
 # credit can close one dead end while another stays open, because whatever a fixed reply earns,
 # a policy can settle on it, and which end a run reaches depends on what it sampled before it
-# settled. Each gated run above ends its two-digit targets on one fixed number, so the next lever
-# to try is exploration at the digits (larger groups for the prompts whose group has no spread),
-# not another shape of the credit.
+# settled. The two-digit targets show what neither credit taught: in {{fig:gated.one_sum_gated}} of
+# the {{fig:gated.gated_runs}} gated runs and {{fig:gated.one_sum_counted}} of the
+# {{fig:gated.counted_runs}} counted runs, at least {{fig:gated.one_sum_share}} of the two-digit
+# targets held out get replies with one and the same digit sum, whatever the target (most often
+# {{fig:gated.one_sum_common}}, in {{fig:gated.one_sum_common_runs}} of those
+# {{fig:gated.one_sum_all_runs}} runs). The policy does not tell the two-digit targets apart under either
+# credit, so the next lever to try is exploration at the digits (larger groups for the prompts
+# whose group has no spread), not another shape of the credit.
 #
 # What the gated policies write held out, per target digit sum (greedy; the most frequent reply
 # and its digit sum):
