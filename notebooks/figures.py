@@ -728,8 +728,13 @@ def gated_fresh_machines() -> dict[str, str]:
     def named(machine: tuple[str, str], seeds: list[int]) -> str:
         return f"seed{'s' if len(seeds) > 1 else ''} {_seeds(seeds)} on an {machine[0]} with {BF16_UNITS_WORDS[machine[1]]}"
     ratio = statistics.mean(seconds[s] for s in slow_seeds) / statistics.mean(seconds[s] for s in fast_seeds)
+    if len(slow_seeds) != 1:
+        raise ValueError(f"lesson 7, 6.8 says one fresh pair ran on the slower machine: seeds {slow_seeds}")
+    gated_run, counted_run = (runs[GATED_FRESH_SEEDS.index(slow_seeds[0])] for runs in pairs)
+    slow_diff = 100 * (_json(f"{_relative(gated_run)}/summary.json")["after"]["greedy"]["pass_both"]
+                       - _json(f"{_relative(counted_run)}/summary.json")["after"]["greedy"]["pass_both"])
     return {"gated.fresh_machines": f"{named(fast, fast_seeds)}, {named(slow, slow_seeds)}",
-            "gated.same_machine": f"{SAME_MACHINE_SECONDS:g}",
+            "gated.same_machine": f"{SAME_MACHINE_SECONDS:g}", "gated.fresh_slow_diff": f"{slow_diff:+.1f}",
             "gated.fresh_slow_seeds": _seeds(slow_seeds), "gated.fresh_machine_seconds_ratio": f"{ratio:.1f}"}
 
 
@@ -793,17 +798,23 @@ def _two_digit_sum(samples: list[dict]) -> tuple[int, float]:
 
 
 def _fixed_number(label: str, run: Path, samples: list[dict]) -> str:
-    """'gated seed 24 writes "..." (digit sum 8) for 32 of 64 prompts': the one sentence with a
-    fixed number that a length-first run wrote for most prompts (refused if it did not)."""
+    """'gated seed 24 writes one frame for 56 of 64 prompts, as "..." (digit sum 8) for 32 of them':
+    the sentence frame a length-first run settled on (written for more than half the prompts),
+    and its most frequent reply, of the right length, with a digit, and at least half of the
+    frame's prompts (refused otherwise)."""
     from course_utils import rewards
 
+    settled = _settled_frame(samples)
     reply, count = collections.Counter(x["completion"] for x in samples).most_common(1)[0]
     top = rewards.check(reply, samples[0]["target_chars"], 0)
-    if not top.n_digits or not top.length_ok or 2 * count < len(samples):
-        raise ValueError(f"lesson 7, 6.8 says {run.name} writes one sentence of the right length with "
-                         f"a fixed number for most prompts: {reply!r} {count} times")
+    # the number is fixed: its most frequent reply is at least half of what the frame was written for
+    if settled is None or _frame(reply) != settled[0] or 2 * count < settled[1] or not top.n_digits \
+            or not top.length_ok:
+        raise ValueError(f"lesson 7, 6.8 says {run.name} settled on one frame of the right length with "
+                         f"a fixed number for most prompts: {reply!r} {count} times, frame {settled}")
     seed = _json(f"{_relative(run)}/config.json")["seed"]
-    return f'{label} seed {seed} writes "{reply}" (digit sum {top.digit_sum}) for {count} of {len(samples)} prompts'
+    return (f'{label} seed {seed} writes one frame for {settled[1]} of {len(samples)} prompts, as "{reply}" '
+            f'(digit sum {top.digit_sum}) for {count} of them')
 
 
 def gated_figures() -> dict[str, str]:

@@ -583,6 +583,12 @@ def test_the_gated_figures_refuse_a_verdict_the_fresh_seeds_stop_supporting(monk
     monkeypatch.setattr(figures, "_json", scattered)
     with pytest.raises(ValueError, match="a fixed number for most prompts"):
         figures.gated_figures()
+    # the same run with a different frame for each prompt: it settled on nothing
+    monkeypatch.setattr(figures, "_json", _with_samples(
+        real, "gated/fresh/gated-seed24/summary.json",
+        lambda samples: [{**x, "completion": "ab" * i + x["completion"]} for i, x in enumerate(samples)]))
+    with pytest.raises(ValueError, match="settled on one frame .* frame None"):
+        figures.gated_figures()
 
 
 def _with_samples(real, rel_summary, change):
@@ -609,6 +615,9 @@ def _with_samples(real, rel_summary, change):
     # every pair on one machine: 6.8 says two
     ("gated/fresh/machines.json", lambda d: {**d, "seeds": {k: d["seeds"]["21"] for k in d["seeds"]}},
      "ran on one machine; their wall times differ"),
+    # two pairs on the slower machine: 6.8 names one
+    ("gated/fresh/machines.json", lambda d: {**d, "seeds": {**d["seeds"], "24": d["seeds"]["25"]}},
+     "ran on one machine; their wall times differ|one fresh pair ran on the slower machine"),
 ])
 def test_the_gated_figures_refuse_machines_the_runs_contradict(monkeypatch, file, changes, mistake):
     assert figures.gated_fresh_machines()["gated.fresh_machines"].startswith("seeds 21, 22, 23 and 24 on an Intel Xeon")

@@ -1187,16 +1187,18 @@ else:
 # 1 of its 960 sampled replies had the
 # right digit sum before the share with the right length first reached half (step
 # 31), and 3 of
-# 3,840 from then to step 150. The digit half
-# of the credit gave this run almost no signal from the start, while the length half can be
-# climbed with no digit at all, and this run climbed it.
+# 3,840 from then to step 150. The exact digit
+# sum, the only one that passes, was as rare before the length was learned as after. (The digit
+# half of the credit also pays near sums; how often the run sampled those is not logged.) The
+# length half can be climbed with no digit at all, and this run climbed it.
 #
 # The change is to make the length pay only through the digits (`rewards.gated_score`):
 #
 # $$\text{gated} = D \left(\tfrac12 + \tfrac12\, \ell\right), \qquad D = d \cdot 2^{-\text{digits short}},$$
 #
-# with $d = 1/(1 + |\text{digit sum} - S|)$ the counted credit's digit part (0 when the digits
-# add up to 0, none or only zeros, against a positive $S$), digits short as in 6.4, and $\ell$
+# with $d = 1/(1 + |\text{digit sum} - S|)$ the graded digit credit (0 when the digits add up to
+# 0, none or only zeros, against a positive $S$), digits short as in 6.4 (so $D$ is the counted
+# credit's digit part), and $\ell$
 # the same length credit. A reply without a digit earns nothing
 # (0.00 for the sentence above), and the length pays in proportion to
 # what the digits earned, so the digits have to come first. Among replies whose digits are right
@@ -1245,9 +1247,12 @@ for reply, digit_target in [("That's a pretty inspiring story.", 10),
 # reads "AVX512" on both). The wall times agree with that file, and the build checks them: the
 # runs of each pair within 1.25x of each other, and seed
 # 25's pair about 1.9x as long as the
-# others. The kind of bf16 unit can change a bf16 run's rounding, and section 6.7 showed how far a change
-# of rounding can move a run. So the machine adds to the spread between seeds; it is the same
-# for both runs of a pair, so it does not enter a pair's difference.
+# others. Running both arms of a pair on one machine keeps the comparison fair, but it does not
+# cancel the machine out. The kind of bf16 unit can change a bf16 run's rounding, and section 6.7
+# showed that a change of rounding can make the runs of one seed close to independent draws. So
+# the machine is one more source of spread, in the seeds' results and in a pair's difference:
+# seed 25's pair, the only one on its machine, differs by
+# +59.4 points.
 #
 # | seed | gated: both | gated: one-digit | gated: two-digit | gated: distinct | gated: entropy, last 5 steps | counted: both | counted: one-digit | counted: two-digit | counted: distinct | counted: entropy, last 5 steps |
 # |---|---|---|---|---|---|---|---|---|---|---|
@@ -1281,11 +1286,11 @@ for reply, digit_target in [("That's a pretty inspiring story.", 10),
 # nine counted runs one did, seed
 # 18's in the screen, and on the fresh seeds neither arm did: an end too
 # rare here for these seeds to say the gate prevents it. The length-first end has a second form
-# that the gate leaves open: one sentence of the right length with one fixed number in it
-# (gated seed 24 writes "44 characters (space not needed)" (digit sum 8) for 32 of 64 prompts; counted seed 22 writes "33 Characters to Your salvation?" (digit sum 6) for 52 of 64 prompts). The form is older than the gate; in section 6.7,
-# fp32 seed 18 writes "34 characters with your feedback" (digit sum 7) for 45 of 64 prompts. Where its digits are right that sentence passes, and near
+# that the gate leaves open: one sentence frame with a fixed number in it, written for most
+# prompts, whose most frequent reply has the right length (gated seed 24 writes one frame for 56 of 64 prompts, as "44 characters (space not needed)" (digit sum 8) for 32 of them; counted seed 22 writes one frame for 54 of 64 prompts, as "33 Characters to Your salvation?" (digit sum 6) for 52 of them). The form is older than the gate; in section 6.7,
+# fp32 seed 18 writes one frame for 64 of 64 prompts, as "34 characters with your feedback" (digit sum 7) for 45 of them. Where its digits are right that sentence passes, and near
 # there the gate still pays a part of it (the cell above prints one such sentence against its own
-# digit sum and one two above it): a reply the policy can settle on for every prompt, with no
+# digit sum and one two above it): a frame the policy can settle on for most prompts, with no
 # digit-free reply needed.
 #
 # Of the three gated runs that ended digits first,
@@ -1301,17 +1306,18 @@ for reply, digit_target in [("That's a pretty inspiring story.", 10),
 # The verdict: on fresh seeds the gate made no difference these seeds could detect, and in both
 # arms the template still came and went from seed to seed. Neither recipe meets what a recipe worth
 # shipping would need (a mean of 80% over fresh seeds with no seed below
-# 60%), so the presets stay as they are. What this points to: a partial
-# credit can close one dead end while another stays open, because whatever a fixed reply earns,
-# a policy can settle on it, and which end a run reaches depends on what it sampled before it
-# settled. The two-digit targets show what neither credit taught: in eight of
+# 60%), so the presets stay as they are. Nor do these runs show that the gate
+# closed the digit-free end (too rare to compare), while the fixed-number end appears under both
+# credits: whatever a fixed reply earns, a policy can settle on it. The two-digit targets show what neither credit taught: in eight of
 # the nine gated runs and nine of the
 # nine counted runs, at least 75% of the two-digit
 # targets held out get replies with one and the same digit sum, whatever the target (most often
 # 10, in ten of those
 # 17 runs). The policy does not tell the two-digit targets apart under either
-# credit, so the next lever to try is exploration at the digits (larger groups for the prompts
-# whose group has no spread), not another shape of the credit.
+# credit. A lever these runs have not tried is more exploration at the digits, for example larger
+# groups for the prompts whose group has no spread. Whether spread is what is missing on the
+# two-digit prompts is not shown here: the log counts groups without spread per step, not per
+# target.
 #
 # What the gated policies write held out, per target digit sum (greedy; the most frequent reply
 # and its digit sum):

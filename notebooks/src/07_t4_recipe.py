@@ -931,16 +931,18 @@ else:
 # {{fig:gated.dead_end_early_hits}} of its {{fig:gated.dead_end_early_samples}} sampled replies had the
 # right digit sum before the share with the right length first reached half (step
 # {{fig:gated.dead_end_length_step}}), and {{fig:gated.dead_end_digit_hits}} of
-# {{fig:gated.dead_end_later_samples}} from then to step {{fig:gated.dead_end_steps}}. The digit half
-# of the credit gave this run almost no signal from the start, while the length half can be
-# climbed with no digit at all, and this run climbed it.
+# {{fig:gated.dead_end_later_samples}} from then to step {{fig:gated.dead_end_steps}}. The exact digit
+# sum, the only one that passes, was as rare before the length was learned as after. (The digit
+# half of the credit also pays near sums; how often the run sampled those is not logged.) The
+# length half can be climbed with no digit at all, and this run climbed it.
 #
 # The change is to make the length pay only through the digits (`rewards.gated_score`):
 #
 # $$\text{gated} = D \left(\tfrac12 + \tfrac12\, \ell\right), \qquad D = d \cdot 2^{-\text{digits short}},$$
 #
-# with $d = 1/(1 + |\text{digit sum} - S|)$ the counted credit's digit part (0 when the digits
-# add up to 0, none or only zeros, against a positive $S$), digits short as in 6.4, and $\ell$
+# with $d = 1/(1 + |\text{digit sum} - S|)$ the graded digit credit (0 when the digits add up to
+# 0, none or only zeros, against a positive $S$), digits short as in 6.4 (so $D$ is the counted
+# credit's digit part), and $\ell$
 # the same length credit. A reply without a digit earns nothing
 # ({{fig:gated.dead_end_gated}} for the sentence above), and the length pays in proportion to
 # what the digits earned, so the digits have to come first. Among replies whose digits are right
@@ -981,9 +983,12 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 # reads "AVX512" on both). The wall times agree with that file, and the build checks them: the
 # runs of each pair within {{fig:gated.same_machine}}x of each other, and seed
 # {{fig:gated.fresh_slow_seeds}}'s pair about {{fig:gated.fresh_machine_seconds_ratio}}x as long as the
-# others. The kind of bf16 unit can change a bf16 run's rounding, and section 6.7 showed how far a change
-# of rounding can move a run. So the machine adds to the spread between seeds; it is the same
-# for both runs of a pair, so it does not enter a pair's difference.
+# others. Running both arms of a pair on one machine keeps the comparison fair, but it does not
+# cancel the machine out. The kind of bf16 unit can change a bf16 run's rounding, and section 6.7
+# showed that a change of rounding can make the runs of one seed close to independent draws. So
+# the machine is one more source of spread, in the seeds' results and in a pair's difference:
+# seed {{fig:gated.fresh_slow_seeds}}'s pair, the only one on its machine, differs by
+# {{fig:gated.fresh_slow_diff}} points.
 #
 # {{GATED_FRESH}}
 #
@@ -1008,11 +1013,11 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 # {{fig:gated.counted_runs}} counted runs {{fig:gated.counted_digit_free}} did, seed
 # {{fig:gated.dead_end_seed}}'s in the screen, and on the fresh seeds neither arm did: an end too
 # rare here for these seeds to say the gate prevents it. The length-first end has a second form
-# that the gate leaves open: one sentence of the right length with one fixed number in it
-# ({{fig:gated.fixed_number_examples}}). The form is older than the gate; in section 6.7,
+# that the gate leaves open: one sentence frame with a fixed number in it, written for most
+# prompts, whose most frequent reply has the right length ({{fig:gated.fixed_number_examples}}). The form is older than the gate; in section 6.7,
 # {{fig:gated.precision_fixed_number}}. Where its digits are right that sentence passes, and near
 # there the gate still pays a part of it (the cell above prints one such sentence against its own
-# digit sum and one two above it): a reply the policy can settle on for every prompt, with no
+# digit sum and one two above it): a frame the policy can settle on for most prompts, with no
 # digit-free reply needed.
 #
 # Of the {{fig:gated.digits_first_runs}} gated runs that ended digits first,
@@ -1028,17 +1033,18 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 # The verdict: on fresh seeds the gate made no difference these seeds could detect, and in both
 # arms the template still came and went from seed to seed. Neither recipe meets what a recipe worth
 # shipping would need (a mean of {{fig:gated.bar_mean}} over fresh seeds with no seed below
-# {{fig:gated.bar_worst}}), so the presets stay as they are. What this points to: a partial
-# credit can close one dead end while another stays open, because whatever a fixed reply earns,
-# a policy can settle on it, and which end a run reaches depends on what it sampled before it
-# settled. The two-digit targets show what neither credit taught: in {{fig:gated.one_sum_gated}} of
+# {{fig:gated.bar_worst}}), so the presets stay as they are. Nor do these runs show that the gate
+# closed the digit-free end (too rare to compare), while the fixed-number end appears under both
+# credits: whatever a fixed reply earns, a policy can settle on it. The two-digit targets show what neither credit taught: in {{fig:gated.one_sum_gated}} of
 # the {{fig:gated.gated_runs}} gated runs and {{fig:gated.one_sum_counted}} of the
 # {{fig:gated.counted_runs}} counted runs, at least {{fig:gated.one_sum_share}} of the two-digit
 # targets held out get replies with one and the same digit sum, whatever the target (most often
 # {{fig:gated.one_sum_common}}, in {{fig:gated.one_sum_common_runs}} of those
 # {{fig:gated.one_sum_all_runs}} runs). The policy does not tell the two-digit targets apart under either
-# credit, so the next lever to try is exploration at the digits (larger groups for the prompts
-# whose group has no spread), not another shape of the credit.
+# credit. A lever these runs have not tried is more exploration at the digits, for example larger
+# groups for the prompts whose group has no spread. Whether spread is what is missing on the
+# two-digit prompts is not shown here: the log counts groups without spread per step, not per
+# target.
 #
 # What the gated policies write held out, per target digit sum (greedy; the most frequent reply
 # and its digit sum):
