@@ -466,14 +466,18 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
     t_end = time.perf_counter()
     lengths = ro.completion_mask.sum(-1).float()
     # two-digit targets (10 and up) need more than a digit copied from the instruction
-    two_digit = torch.tensor([p.target_digit_sum >= 10 for p in (local if W == 1 else prompts)
-                              for _ in range(G)])
+    two_digit_groups = torch.tensor([p.target_digit_sum >= 10 for p in (local if W == 1 else prompts)])
+    two_digit = two_digit_groups.repeat_interleave(G)
+    # the groups without spread among the two-digit ones: whether those prompts lack signal
+    # (lesson 7, 6.8) is read from this, not from zero_std_frac over the whole batch
+    constant = losses.constant_groups(s["rewards"], G).squeeze(-1)
     total_tokens = (int(ro.prompt_mask.sum()) + int(lengths.sum())) * W
     return dict(
         reward_mean=float(s["rewards"].mean()), reward_std=float(s["rewards"].std()),
         pass_length=float(s["length_ok"].mean()), pass_digits=float(s["digits_ok"].mean()),
         pass_both=float(s["passed"].mean()), samples_two_digit=int(two_digit.sum()),
-        passes_two_digit=int(s["passed"][two_digit].sum()), chars_abs_error=float(s["chars_abs_error"].mean()),
+        passes_two_digit=int(s["passed"][two_digit].sum()), groups_two_digit=int(two_digit_groups.sum()),
+        zero_std_two_digit=int(constant[two_digit_groups].sum()), chars_abs_error=float(s["chars_abs_error"].mean()),
         adv_mean=float(advantages.mean()), adv_std=float(advantages.std()),
         adv_abs_mean=float(advantages.abs().mean()), zero_std_frac=zero_std / len(prompts),
         groups_sampled=groups_sampled * W, sampling_rounds=rounds, first_round_pass_both=first_pass,

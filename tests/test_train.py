@@ -35,6 +35,10 @@ def test_main_job_smoke_writes_a_complete_run(tmp_path):
                 "zero_std_frac", "step_time", "tokens_per_s"):
         assert key in records[0]
     assert records[0]["adv_std"] > 0  # the smoke preset must exercise a real update
+    group_size = json.loads((out / "config.json").read_text())["group_size"]
+    for r in records:   # the two-digit groups without spread are some of the groups without spread
+        assert r["samples_two_digit"] == group_size * r["groups_two_digit"]
+        assert 0 <= r["zero_std_two_digit"] <= min(r["groups_two_digit"], round(r["zero_std_frac"] * r["groups_sampled"]))
     assert "| mean reward |" in proc.stdout and "before (sampled)" in proc.stdout
     # which machine it ran on: the capability alone does not tell AMX from AVX512-BF16 (6.8)
     summary = json.loads((out / "summary.json").read_text())
@@ -192,6 +196,23 @@ def test_equal_rewards_give_no_gradient_unless_the_entropy_bonus_is_on(monkeypat
     assert metrics["entropy_weight"] == (cfg.entropy_weight_max if expect_gradient else 0.0)
     norm = sum(float(p.grad.norm()) for p in policy.model.parameters() if p.grad is not None)
     assert (norm > 0) == expect_gradient
+
+
+def test_the_log_counts_the_two_digit_groups_without_spread(monkeypatch):
+    """zero_std_two_digit: of the two-digit groups (targets 10 and up), those whose rewards are all
+    equal. Here the target-11 and target-10 groups are constant, the target-12 and target-5
+    groups are not."""
+    def reward(prompts, completions, target_digit_sum, **kw):
+        return [0.5 if s in (10, 11) else 0.1 * i for i, s in enumerate(target_digit_sum)]
+    monkeypatch.setitem(train.rewards.REWARDS, "shaped", reward)
+    policy = train.setup(load_config("smoke"))
+    policy.optimizer.step = lambda *a, **k: None
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=s)
+               for t, s in (("One two", 5), ("Three", 11), ("Four five", 12), ("Six", 10))]
+    metrics = train.grpo_step(policy, prompts)
+    assert (metrics["groups_two_digit"], metrics["zero_std_two_digit"]) == (3, 2)
+    assert metrics["zero_std_frac"] == 0.5
+    assert metrics["samples_two_digit"] == 3 * policy.cfg.group_size
 
 
 def test_kl_to_the_reference_starts_at_zero_and_several_updates_clip():

@@ -1043,8 +1043,9 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 # {{fig:gated.one_sum_all_runs}} runs). The policy does not tell the two-digit targets apart under either
 # credit. A lever these runs have not tried is more exploration at the digits, for example larger
 # groups for the prompts whose group has no spread. Whether spread is what is missing on the
-# two-digit prompts is not shown here: the log counts groups without spread per step, not per
-# target.
+# two-digit prompts is not shown here: these runs' logs count the groups without spread per
+# step, not per target. The log now also counts them among the two-digit groups
+# (`groups_two_digit`, `zero_std_two_digit` in `metrics.jsonl`), so the next runs can tell.
 #
 # What the gated policies write held out, per target digit sum (greedy; the most frequent reply
 # and its digit sum):
