@@ -1041,10 +1041,12 @@ for reply, digit_target in [({{fig:gated.dead_end_literal}}, {{fig:gated.dead_en
 # targets held out get replies with one and the same digit sum, whatever the target (most often
 # {{fig:gated.one_sum_common}}, in {{fig:gated.one_sum_common_runs}} of those
 # {{fig:gated.one_sum_all_runs}} runs). The policy does not tell the two-digit targets apart under either
-# credit. A lever these runs have not tried is more exploration at the digits, for example larger
-# groups for the prompts whose group has no spread. Whether spread is what is missing on the
-# two-digit prompts is not shown here: these runs' logs count the groups without spread per
-# step, not per target. The log now also counts them among the two-digit groups
+# credit. A lever these runs have not tried is more samples for the targets not yet solved
+# (larger groups for them): in no fresh run were more than {{fig:gated.fresh_two_sampled_max_share}}
+# of the two-digit replies sampled in training passes. Larger groups only where a group has no
+# spread would fire seldom under a graded credit, which gives most groups some spread; whether
+# the two-digit groups had spread, these runs' logs cannot say (they count the groups without
+# spread per step, not per target). The log now counts them among the two-digit groups
 # (`groups_two_digit`, `zero_std_two_digit` in `metrics.jsonl`), so the next runs can tell.
 #
 # What the gated policies write held out, per target digit sum (greedy; the most frequent reply
