@@ -230,9 +230,10 @@ def completions_by_target(runs: list[Path], labels: list[str] | None = None) -> 
         for samples in afters:
             mine = [s for s in samples if s["target_digit_sum"] == target]
             passed = sum(s["n_chars"] == s["target_chars"] and s["digit_sum"] == target for s in mine)
-            top = top_completion(mine).strip() if mine else ""
-            sums = {s["digit_sum"] for s in mine if s["completion"].strip() == top}
+            # most_common keeps first-met order among equal counts: top_completion's tie rule
             counts = Counter(s["completion"] for s in mine).most_common()
+            top = counts[0][0].strip() if mine else ""
+            sums = {s["digit_sum"] for s in mine if s["completion"].strip() == top}
             tied = sum(n == counts[0][1] for _, n in counts) - 1 if mine else 0
             tie = f"; tied with {tied} other{'s' if tied > 1 else ''} at {counts[0][1]} each" if tied else ""
             cells += [f"{passed} of {len(mine)}", f"`{_cell(top)}` ({', '.join(map(str, sorted(sums)))}{tie})"

@@ -706,7 +706,7 @@ def gated_fresh_machines() -> dict[str, str]:
     if set(listed) != set(GATED_FRESH_SEEDS):
         raise ValueError(f"lesson 7, 6.8 names the machine of every fresh pair: machines.json lists "
                          f"seeds {sorted(listed)}, not {list(GATED_FRESH_SEEDS)}")
-    seconds, by_machine = {}, collections.defaultdict(list)
+    seconds, pass_both, by_machine = {}, {}, collections.defaultdict(list)
     for seed, *runs in zip(GATED_FRESH_SEEDS, *pairs):
         summaries = [_json(f"{_relative(r)}/summary.json") for r in runs]
         for run, summary in zip(runs, summaries):
@@ -717,6 +717,7 @@ def gated_fresh_machines() -> dict[str, str]:
             raise ValueError(f"lesson 7, 6.8 says both runs of seed {seed}'s pair ran on one machine; "
                              f"their wall times differ: {pair}")
         seconds[seed] = statistics.mean(pair)
+        pass_both[seed] = [s["after"]["greedy"]["pass_both"] for s in summaries]   # gated, counted
         by_machine[(listed[seed]["model"], listed[seed]["bf16_units"])].append(seed)
     for seeds in by_machine.values():
         times = [seconds[s] for s in seeds]
@@ -730,9 +731,8 @@ def gated_fresh_machines() -> dict[str, str]:
     ratio = statistics.mean(seconds[s] for s in slow_seeds) / statistics.mean(seconds[s] for s in fast_seeds)
     if len(slow_seeds) != 1:
         raise ValueError(f"lesson 7, 6.8 says one fresh pair ran on the slower machine: seeds {slow_seeds}")
-    gated_run, counted_run = (runs[GATED_FRESH_SEEDS.index(slow_seeds[0])] for runs in pairs)
-    slow_diff = 100 * (_json(f"{_relative(gated_run)}/summary.json")["after"]["greedy"]["pass_both"]
-                       - _json(f"{_relative(counted_run)}/summary.json")["after"]["greedy"]["pass_both"])
+    gated_pass, counted_pass = pass_both[slow_seeds[0]]
+    slow_diff = 100 * (gated_pass - counted_pass)
     return {"gated.fresh_machines": f"{named(fast, fast_seeds)}, {named(slow, slow_seeds)}",
             "gated.same_machine": f"{SAME_MACHINE_SECONDS:g}", "gated.fresh_slow_diff": f"{slow_diff:+.1f}",
             "gated.fresh_slow_seeds": _seeds(slow_seeds), "gated.fresh_machine_seconds_ratio": f"{ratio:.1f}"}

@@ -562,25 +562,15 @@ def test_the_gated_figures_refuse_a_verdict_the_fresh_seeds_stop_supporting(monk
         figures.gated_figures()
     # a gated run whose replies hold no digit
     first = sorted(gated_fresh)[0]
-    def digit_free(rel):
-        data = real(rel)
-        if rel == f"gated/fresh/{first}/summary.json":
-            greedy = data["after"]["greedy"]
-            samples = [{**x, "completion": "No digits in this reply at all!!"} for x in greedy["samples"]]
-            data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": samples}}}
-        return data
-    monkeypatch.setattr(figures, "_json", digit_free)
+    monkeypatch.setattr(figures, "_json", _with_samples(
+        real, f"gated/fresh/{first}/summary.json",
+        lambda samples: [{**x, "completion": "No digits in this reply at all!!"} for x in samples]))
     with pytest.raises(ValueError, match="no gated run and no fresh run ended on replies without a digit"):
         figures.gated_figures()
     # the gated run that ended length first, with its replies all different: no fixed sentence
-    def scattered(rel):
-        data = real(rel)
-        if rel == "gated/fresh/gated-seed24/summary.json":
-            greedy = data["after"]["greedy"]
-            samples = [{**x, "completion": f"{x['completion']}{i}"} for i, x in enumerate(greedy["samples"])]
-            data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": samples}}}
-        return data
-    monkeypatch.setattr(figures, "_json", scattered)
+    monkeypatch.setattr(figures, "_json", _with_samples(
+        real, "gated/fresh/gated-seed24/summary.json",
+        lambda samples: [{**x, "completion": f"{x['completion']}{i}"} for i, x in enumerate(samples)]))
     with pytest.raises(ValueError, match="a fixed number for most prompts"):
         figures.gated_figures()
     # the same run with a different frame for each prompt: it settled on nothing
@@ -591,11 +581,13 @@ def test_the_gated_figures_refuse_a_verdict_the_fresh_seeds_stop_supporting(monk
         figures.gated_figures()
 
 
-def _with_samples(real, rel_summary, change):
-    """figures._json with the held-out greedy samples of one summary passed through ``change``."""
+def _with_samples(real, rel_summaries, change):
+    """figures._json with the held-out greedy samples of one summary (a path) or several (a set)
+    passed through ``change``."""
+    wanted = {rel_summaries} if isinstance(rel_summaries, str) else rel_summaries
     def changed(rel):
         data = real(rel)
-        if rel == rel_summary:
+        if rel in wanted:
             greedy = data["after"]["greedy"]
             data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": change(greedy["samples"])}}}
         return data
@@ -666,15 +658,10 @@ def test_the_gated_figures_refuse_endings_the_runs_stop_supporting(monkeypatch):
     with pytest.raises(ValueError, match="one settled on a frame one character short"):
         figures.gated_figures()
     # every gated run's two-digit replies with the target's own digit sum: no one fixed sum
-    gated = [r for stage in ("tuning", "fresh") for r in figures.gated_pair_runs(stage)[0]]
-    def spread(rel):
-        data = real(rel)
-        if rel.endswith("summary.json") and rel.split("/")[-2] in {r.name for r in gated}:
-            greedy = data["after"]["greedy"]
-            samples = [{**x, "digit_sum": x["target_digit_sum"]} for x in greedy["samples"]]
-            data = {**data, "after": {**data["after"], "greedy": {**greedy, "samples": samples}}}
-        return data
-    monkeypatch.setattr(figures, "_json", spread)
+    gated = {f"{figures._relative(r)}/summary.json" for stage in ("tuning", "fresh")
+             for r in figures.gated_pair_runs(stage)[0]}
+    monkeypatch.setattr(figures, "_json", _with_samples(
+        real, gated, lambda samples: [{**x, "digit_sum": x["target_digit_sum"]} for x in samples]))
     with pytest.raises(ValueError, match="end their two-digit targets on one digit sum"):
         figures.gated_figures()
 
