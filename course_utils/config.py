@@ -135,6 +135,12 @@ class Config:
     entropy_coef: float = _f(0.0, "entropy bonus coefficient ('adaptive': its change per step)")
     entropy_target: float = _f(0.5, "'adaptive' entropy bonus: the entropy per completion token, "
                                     "in nats, it holds the policy at")
+    top_entropy_quantile: float = _f(1.0, "rho: the policy term only at the top rho share of each "
+                                          "micro-batch's completion tokens by entropy, the forks "
+                                          "where a reply can go either way (Wang et al. 2025, "
+                                          "'the 80/20 rule'; TRL's top_entropy_quantile, 0.2 in "
+                                          "the paper); the KL and the course's entropy bonus keep "
+                                          "every token (TRL's bonus keeps only these); 1: every token")
     entropy_weight_max: float = _f(0.1, "cap on the inverse-variance and adaptive entropy weights, "
                                         "so they stay finite")
     # --- which prompts a step trains on ----------------------------------------------------------
@@ -267,6 +273,8 @@ class Config:
         need(self.kl_schedule == "constant" or self.kl_coef > 0, "kl_schedule",
              "'reward_aware' scales kl_coef, so it needs kl_coef > 0")
         need(self.entropy_weight_max > 0, "entropy_weight_max", "must be > 0")
+        need(self.top_entropy_quantile > 0, "top_entropy_quantile",
+             "must be > 0, a share of the tokens (1 trains on every token)")
         need(self.entropy_bonus == "none" or self.entropy_coef > 0, "entropy_coef",
              f"must be > 0 when entropy_bonus='{self.entropy_bonus}'")
         # dynamic sampling keeps only groups with signal, so groups that all pass never reach
@@ -345,6 +353,7 @@ FLOAT_BOUNDS = [("temperature", 0.01, 10.0, "from 0.01 to 10 (evaluation has a g
                 ("entropy_coef", 0.0, 100.0, "from 0 to 100"),
                 ("entropy_target", 0.0, 20.0, "from 0 to 20 nats"),
                 ("entropy_weight_max", 0.0, 100.0, "> 0 and at most 100"),
+                ("top_entropy_quantile", 0.0, 1.0, "in (0, 1]: the share of tokens trained on"),
                 ("lora_alpha", 0.0, 1e6, "> 0 and at most 1e6")]
 
 

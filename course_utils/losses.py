@@ -176,6 +176,23 @@ def token_entropy(logits: torch.Tensor) -> torch.Tensor:
     return -(logp.exp() * logp).sum(-1)
 
 
+def high_entropy_mask(entropy: torch.Tensor, mask: torch.Tensor, top_quantile: float) -> torch.Tensor:
+    """1 at the real tokens whose entropy is at or above the (1 - rho) quantile of the real
+    tokens' entropies (rho = ``top_quantile``), else 0: the "forking" tokens of Wang et al.
+    (2025, "Beyond the 80/20 rule"), where a reply can still go several ways. TRL's
+    ``get_high_entropy_mask``: ``torch.quantile``'s linear interpolation, ``>=``, so a tie at
+    the threshold keeps every tied token and rho = 1 keeps every real token. No gradient: the
+    mask only chooses which tokens the policy term trains."""
+    if not 0 < top_quantile <= 1:
+        raise ValueError(f"top_quantile must be in (0, 1], got {top_quantile}")
+    real = mask.bool()
+    values = entropy.detach()[real].float()
+    if values.numel() == 0:
+        return torch.zeros_like(mask, dtype=entropy.dtype)
+    threshold = torch.quantile(values, 1.0 - top_quantile)
+    return ((entropy.detach().float() >= threshold) & real).to(entropy.dtype)
+
+
 def entropy_weight(rewards: torch.Tensor, mode: str, coef: float, max_weight: float) -> float:
     """Weight of the entropy bonus. A course extension: GRPO itself has no entropy term.
 
@@ -312,7 +329,8 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
               entropy: torch.Tensor | None = None, entropy_weight: float = 0.0,
               max_completion_length: int | None = None, total_sequences: int | None = None,
               total_tokens: int | float | None = None, micro_batches: int = 1,
-              sampling_weights: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+              sampling_weights: torch.Tensor | None = None,
+              top_entropy_quantile: float = 1.0) -> tuple[torch.Tensor, dict[str, float]]:
     """The GRPO objective, negated into a loss (DeepSeekMath eq. 3, plus the options above).
 
     per-token loss = -w min(rho A, clip(rho) A) + beta * KL_k3 - entropy_weight * H
@@ -320,6 +338,9 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
     ``sampling_weights`` w (constants, 1 if None) correct for tokens drawn by a sampler other
     than the trainer (``mismatch.importance_weights``); as in TRL they weight the surrogate only,
     since the KL and entropy terms are computed under the trainer itself.
+    ``top_entropy_quantile`` rho < 1 keeps the surrogate only at the top rho share of tokens by
+    ``entropy`` (``high_entropy_mask``; TRL's option of that name): the others still count in the
+    average's denominator and still get the KL and entropy terms, as in TRL.
     """
     # Whatever padding positions hold must not matter, not even an inf (0 * inf is NaN): replace
     # it with 0 before any exp, which also keeps the gradient at padding exactly 0.
@@ -335,6 +356,12 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
         weights = torch.where(real, sampling_weights.detach(), 0.0)
         per_token = per_token * weights
         stats["is_weight_mean"] = masked_mean(weights, mask)
+    if top_entropy_quantile < 1:
+        if entropy is None:
+            raise ValueError("top_entropy_quantile < 1 needs the per-token entropy")
+        forks = high_entropy_mask(entropy, mask, top_entropy_quantile)
+        per_token = per_token * forks
+        stats["high_entropy_frac"] = masked_mean(forks, mask)
     if beta > 0:
         if ref_logprobs is None:
             raise ValueError("beta > 0 needs ref_logprobs from the reference model")

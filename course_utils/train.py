@@ -418,7 +418,7 @@ def grpo_step(policy: Policy, prompts: list[data.Prompt],
                     beta=beta, entropy=entropy, entropy_weight=ent_weight,
                     max_completion_length=cfg.max_new_tokens, total_sequences=n_seq,
                     total_tokens=n_tok, micro_batches=cfg.grad_accum * W,
-                    sampling_weights=weights)
+                    sampling_weights=weights, top_entropy_quantile=cfg.top_entropy_quantile)
                 if first is not None:
                     # the sampler-trainer gap per token on this batch (benchmarks/RESULTS.md
                     # measures it once; this logs how it moves as the policy trains)

@@ -99,8 +99,10 @@ MAPPING: tuple[Row, ...] = (
              "it). TRL adds each micro-batch's per-token mean entropy whatever the loss type; the "
              "course aggregates the bonus like the loss, the same for 'dapo' without accumulation. "
              "'inverse_variance' has no TRL flag"),
-    Row((), {"top_entropy_quantile": 1.0},
-        note="the course trains on every token; 0.2 keeps the highest-entropy fifth (lesson 6)"),
+    Row(("top_entropy_quantile",), {"top_entropy_quantile": 1.0},
+        note="1 trains on every token; 0.2 keeps the highest-entropy fifth of each micro-batch's "
+             "tokens in the policy term (lesson 6); both threshold at torch.quantile, >=, the course over "
+             "each process's micro-batch, TRL over the micro-batch gathered from every process"),
     Row((), {"importance_sampling_level": "token"},
         note="the course's ratio is per token; 'sequence' is GSPO's"),
     Row((), {"use_vllm": False},
@@ -160,6 +162,9 @@ def no_equivalent(cfg: Config) -> list[str]:
     if cfg.is_correction != "none":
         lines.append(f"is_correction={cfg.is_correction!r} (TRL corrects only vLLM's samples; "
                      f"the kwargs carry the mode, which acts once use_vllm=True)")
+    if cfg.top_entropy_quantile < 1 and cfg.entropy_bonus != "none":
+        lines.append("top_entropy_quantile with an entropy bonus (TRL applies its bonus, and "
+                     "measures its adaptive target, on the kept tokens only; the course on every token)")
     if cfg.hard_first_steps:
         ramp = ", ramped" if cfg.hard_first_ramp else ""
         lines.append(f"hard_first_steps={cfg.hard_first_steps}{ramp} (TRL has no curriculum)")
@@ -191,7 +196,7 @@ def grpo_config_kwargs(cfg: Config, precision: str | None = None) -> tuple[dict[
         scale_rewards=cfg.advantage_scale, loss_type=cfg.loss_type,
         num_iterations=cfg.updates_per_batch, epsilon=cfg.clip_eps_low,
         epsilon_high=cfg.clip_eps_high, beta=cfg.kl_coef, use_bias_correction_kl=False,
-        mask_truncated_completions=cfg.overlong_filter, top_entropy_quantile=1.0,
+        mask_truncated_completions=cfg.overlong_filter, top_entropy_quantile=cfg.top_entropy_quantile,
         importance_sampling_level="token", shuffle_dataset=True,
         vllm_importance_sampling_correction=cfg.is_correction != "none",
         vllm_importance_sampling_mode="sequence_mask" if cfg.is_correction == "none" else cfg.is_correction,

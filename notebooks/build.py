@@ -199,6 +199,12 @@ def gated_pairs_markdown(stage: str) -> str:
     return ablation.paired_arms(*figures.gated_pair_runs(stage), ("gated", "counted"))
 
 
+def forks_pairs_markdown() -> str:
+    """Lesson 7, 6.9: the policy term at the forks only against 6.8's gated runs, paired."""
+    from course_utils import ablation
+    return ablation.paired_arms(*figures.forks_pair_runs(), ("forks", "gated"))
+
+
 def gated_by_target_markdown() -> str:
     """Lesson 7, 6.8: what the gated runs on fresh seeds write per target digit sum."""
     from course_utils import ablation
@@ -302,6 +308,8 @@ def render(source: Path, learner: bool) -> dict[str, str]:
         text = fill_markdown(text, "GATED_TUNING", gated_pairs_markdown("tuning"))
         text = fill_markdown(text, "GATED_FRESH", gated_pairs_markdown("fresh"))
         text = fill_markdown(text, "GATED_BY_TARGET", gated_by_target_markdown())
+    if "{{FORKS_TUNING}}" in text:
+        text = fill_markdown(text, "FORKS_TUNING", forks_pairs_markdown())
     text = strip_solutions(text) if learner else keep_solutions(text)
     text = (text.replace("{{COLAB_BADGE}}", badge).replace("{{SOLUTIONS_NOTE}}", note)
             .replace("{{SETUP}}", setup_code()))
@@ -378,7 +386,8 @@ README_RESULTS = {"cpu": lambda: demoted((RESULTS / "cpu" / "report.md").read_te
                   "precision": lambda: precision_pairs_markdown().strip(),
                   "gated": lambda: ("**Screen, tuning seeds** (the counted arm is 6.7's bf16 runs):\n\n"
                                     + gated_pairs_markdown("tuning") + "\n**Frozen, fresh seeds:**\n\n"
-                                    + gated_pairs_markdown("fresh")).strip()}
+                                    + gated_pairs_markdown("fresh")).strip(),
+                  "forks": lambda: forks_pairs_markdown().strip()}
 
 
 # A figure in the README's prose: <!-- fig: NAME -->VALUE<!-- end fig -->, VALUE rendered from

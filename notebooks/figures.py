@@ -977,6 +977,150 @@ def gated_figures() -> dict[str, str]:
                    "gated.dead_end_gated": f"{rewards.gated_score(result, *targets):.2f}"}
 
 
+# lesson 7, 6.9: 6.8's gated recipe with the policy term only at the forks (the top fifth of a
+# step's tokens by entropy, top_entropy_quantile), screened on 6.8's tuning seeds against their
+# stored gated runs (benchmarks/forks_runs.py). The controls were not rerun in full: a rerun of
+# one for its first steps on the forks runs' machine matched it bitwise.
+FORKS_SEEDS = (16, 17, 18)
+FORKS_QUANTILE = 0.2
+FORKS_RERUN = "forks/rerun-gated-seed16-steps5"
+# the keys of a step's log that the machine's speed moves and its arithmetic does not
+TIMING_KEYS = {"gen_time", "train_time", "step_time", "tokens_per_s"}
+
+
+def forks_pair_runs() -> tuple[list[Path], list[Path]]:
+    """(forks runs, their controls: 6.8's gated tuning runs), paired by seed."""
+    if not set(FORKS_SEEDS) <= set(GATED_TUNING_SEEDS):
+        raise ValueError(f"lesson 7, 6.9's seeds {FORKS_SEEDS} are 6.8's tuning seeds {GATED_TUNING_SEEDS}, "
+                         f"whose gated runs are its controls")
+    forks = [RESULTS / "forks" / f"forks-seed{s}" for s in FORKS_SEEDS]
+    missing = [_relative(r) for r in forks if not (r / "summary.json").exists()]
+    if missing:
+        raise ValueError(f"lesson 7, 6.9 needs a forks run on every seed {FORKS_SEEDS}: missing {missing} "
+                         f"(python benchmarks/forks_runs.py --seed N)")
+    return forks, [RESULTS / "gated" / "tuning" / f"gated-seed{s}" for s in FORKS_SEEDS]
+
+
+def _check_forks_pairs() -> None:
+    """What 6.9 says of its runs: each forks run is its seed's gated run with
+    top_entropy_quantile = FORKS_QUANTILE and nothing else changed, in bf16 on a CPU with AMX;
+    and the stored control, rerun on such a CPU for its first steps, matched bitwise."""
+    for seed, forks, control in zip(FORKS_SEEDS, *forks_pair_runs()):
+        f, c = (_config_with_defaults(_relative(r)) for r in (forks, control))
+        changed = {k for k in c if k != "out_dir" and f[k] != c[k]}
+        if changed != {"top_entropy_quantile"} or f["top_entropy_quantile"] != FORKS_QUANTILE or f["seed"] != seed:
+            raise ValueError(f"lesson 7, 6.9 says {forks.name} is {control.name} with top_entropy_quantile="
+                             f"{FORKS_QUANTILE} and nothing else changed; it changes {sorted(changed)}")
+        summary = _json(f"{_relative(forks)}/summary.json")
+        if summary["precision"] != "bf16" or summary.get("cpu", {}).get("bf16_units") != "AMX":
+            raise ValueError(f"lesson 7, 6.9 says {forks.name} ran in bf16 on a CPU with AMX: "
+                             f"{summary['precision']}, {summary.get('cpu')}")
+    rerun = RESULTS / FORKS_RERUN
+    config = _config_with_defaults(FORKS_RERUN)
+    control = RESULTS / "gated" / "tuning" / f"gated-seed{config['seed']}"
+    if {k for k, v in _config_with_defaults(_relative(control)).items()
+            if k not in ("out_dir", "max_steps") and config[k] != v}:
+        raise ValueError(f"lesson 7, 6.9 says {FORKS_RERUN} reruns {control.name}")
+    if _json(f"{FORKS_RERUN}/summary.json").get("cpu", {}).get("bf16_units") != "AMX":
+        raise ValueError(f"lesson 7, 6.9 says {FORKS_RERUN} ran on a CPU with AMX")
+    from course_utils import ablation
+    # every number the stored log holds, timings aside (the rerun's log has keys added since)
+    again, stored = ablation.records(rerun), ablation.records(control)[:config["max_steps"]]
+    same = len(again) == config["max_steps"] and all(
+        x[k] == y.get(k) for x, y in zip(stored, again) for k in x
+        if k not in TIMING_KEYS and not k.startswith("time_"))
+    if not same:
+        raise ValueError(f"lesson 7, 6.9 says {FORKS_RERUN} matches {control.name}'s first "
+                         f"{config['max_steps']} steps bitwise")
+
+
+BARE_CHARS, ECHO_CHARS = 5, 40
+
+
+def _sampled_passes(run: Path, steps: list[dict]) -> int:
+    """The replies sampled in a run's training that passed both constraints."""
+    config = _json(f"{_relative(run)}/config.json")
+    return sum(round(x["pass_both"] * config["prompts_per_step"] * config["group_size"]) for x in steps)
+
+
+def forks_figures() -> dict[str, str]:
+    """Lesson 7, 6.9: the forks arm against 6.8's gated runs on the tuning seeds, and the checks
+    of what its prose says of them."""
+    from course_utils import ablation, rewards, stats
+
+    _check_forks_pairs()
+    forks, control = forks_pair_runs()
+    arms = {"forks": forks, "gated": control}
+    after = {r: _json(f"{_relative(r)}/summary.json")["after"]["greedy"] for r in forks + control}
+    logs = {r: ablation.records(r) for r in forks + control}
+    sampled = {arm: [_sampled_passes(r, logs[r]) for r in runs] for arm, runs in arms.items()}
+    figs = {"forks.seed_list": _seeds(list(FORKS_SEEDS)), "forks.quantile": f"{FORKS_QUANTILE}",
+            "forks.share": f"{FORKS_QUANTILE:.0%}",
+            "forks.rerun_steps": f"{_config_with_defaults(FORKS_RERUN)['max_steps']}",
+            "forks.forks_sampled_max": f"{max(sampled['forks'])}",
+            "forks.gated_sampled_min": f"{min(sampled['gated'])}"}
+    for arm, runs in arms.items():
+        def per_run(value, fmt=""):   # one value per seed, as "a, b and c"
+            return _seeds([value(r) for r in runs], fmt)
+        figs |= {f"forks.{arm}_mean": f"{statistics.mean(after[r]['pass_both'] for r in runs):.1%}",
+                 f"forks.{arm}_worst": f"{min(after[r]['pass_both'] for r in runs):.1%}",
+                 f"forks.{arm}_two_mean": f"{statistics.mean(after[r]['pass_both_two_digit'] for r in runs):.1%}",
+                 f"forks.{arm}_sampled": _seeds(sampled[arm]),
+                 f"forks.{arm}_two_of": per_run(lambda r: f"{sum(x['passes_two_digit'] for x in logs[r])} of "
+                                                          f"{sum(x['samples_two_digit'] for x in logs[r]):,}"),
+                 f"forks.{arm}_digits_sampled": per_run(lambda r: statistics.mean(x["pass_digits"] for x in logs[r]), ".0%"),
+                 f"forks.{arm}_entropy_end": per_run(lambda r: ablation.tail_mean(logs[r], "entropy"), ".2f"),
+                 f"forks.{arm}_tokens": per_run(lambda r: ablation.tail_mean(logs[r], "completion_tokens"), ".1f"),
+                 f"forks.{arm}_truncated": per_run(lambda r: statistics.mean(x["truncated_frac"] for x in logs[r]), ".0%"),
+                 f"forks.{arm}_length_ok": per_run(lambda r: after[r]["pass_length"], ".1%"),
+                 f"forks.{arm}_kl": per_run(lambda r: statistics.mean(x["kl"] for x in logs[r]), ".2f"),
+                 f"forks.{arm}_bonus_steps": per_run(lambda r: sum(x["entropy_weight"] > 0 for x in logs[r]))}
+    # what 6.9's prose says of every pair: the forks run ended with a higher entropy, had more
+    # replies cut off at the cap in training and fewer of the right length held out; no forks
+    # run passed a held-out prompt or sampled as many passes as any control; its adaptive bonus
+    # never switched on; and the verdict, dropping the lever, needs it to have done worse
+    pairs = list(zip(forks, control))
+    entropy_end = [[ablation.tail_mean(logs[r], "entropy") for r in pair] for pair in pairs]
+    truncated = [[statistics.mean(x["truncated_frac"] for x in logs[r]) for r in pair] for pair in pairs]
+    for what, values in (("ended with a higher entropy", entropy_end), ("had more replies cut off", truncated)):
+        if not all(f > c for f, c in values):
+            raise ValueError(f"lesson 7, 6.9 says every forks run {what} than its control: {values}")
+    length_ok = [[after[r]["pass_length"] for r in pair] for pair in pairs]
+    if not all(f < c for f, c in length_ok):
+        raise ValueError(f"lesson 7, 6.9 says every forks run had fewer held-out replies of the right length: {length_ok}")
+    both = stats.paired([after[r]["pass_both"] for r in forks], [after[r]["pass_both"] for r in control])
+    if not both.mean < 0:
+        raise ValueError(f"lesson 7, 6.9 drops the lever because it did worse on these seeds: {both}")
+    if any(after[r]["pass_both"] > 0 for r in forks) or max(sampled["forks"]) >= min(sampled["gated"]):
+        raise ValueError(f"lesson 7, 6.9 says no forks run passed a held-out prompt, and each sampled fewer "
+                         f"passing replies than any control: {sampled}")
+    if any(x["entropy_weight"] > 0 for r in forks for x in logs[r]):
+        raise ValueError("lesson 7, 6.9 says the adaptive entropy bonus never switched on in a forks run")
+    figs["forks.seeds_below"] = _seeds_above([after[r]["pass_both"] for r in control],
+                                             [after[r]["pass_both"] for r in forks])
+    # the forks runs' held-out replies: bare digits (at most BARE_CHARS characters) and long ones
+    # (ECHO_CHARS or more), and what the gated credit pays a bare right digit
+    samples = [after[r]["samples"] for r in forks]
+    config = _json(f"{_relative(forks[0])}/config.json")
+    bare = rewards.check("7", config["target_chars"], 7)
+    figs |= {"forks.bare": _seeds([sum(x["n_chars"] <= BARE_CHARS for x in s) for s in samples]),
+             "forks.echo": _seeds([sum(x["n_chars"] >= ECHO_CHARS for x in s) for s in samples]),
+             "forks.held_out": f"{len(samples[0])}", "forks.bare_chars": f"{BARE_CHARS}",
+             "forks.echo_chars": f"{ECHO_CHARS}", "forks.target_chars": f"{config['target_chars']}",
+             "forks.bare_gated": f"{rewards.gated_score(bare, config['target_chars'], 7):.2f}",
+             "forks.samples_per_run": f"{config['max_steps'] * config['prompts_per_step'] * config['group_size']:,}",
+             "forks.kl_coef": f"{config['kl_coef']}",
+             # the base model's replies: the first step samples before any update
+             "forks.first_truncated": _seeds([logs[r][0]["truncated_frac"] for r in forks], ".0%")}
+    # the share of a step's tokens the mask kept; with the denominators unchanged the policy term
+    # shrinks to about that share while the KL keeps its weight, so against the policy term the
+    # KL weighs about 1 / kept times as much; and the tokens of a reply the policy term reached
+    kept = [statistics.mean(x["high_entropy_frac"] for x in logs[r]) for r in forks]
+    kept_per_reply = [statistics.mean(x["high_entropy_frac"] * x["completion_tokens"] for x in logs[r]) for r in forks]
+    return figs | {"forks.kept": _seeds(kept, ".1%"), "forks.kl_scale": f"{1 / statistics.mean(kept):.0f}",
+                   "forks.kept_per_reply": _seeds(kept_per_reply, ".1f")}
+
+
 def fresh_preset() -> dict:
     """The cpu preset on the same fresh seeds, as ``python -m course_utils.ablation --seeds 10 11
     12 13 14 --arms "full recipe (the cpu preset)" --out notebooks/results/fresh-seeds/preset``
@@ -1039,7 +1183,7 @@ def data_figures() -> dict[str, str]:
 
 def figures() -> dict[str, str]:
     return {**plan_figures(), **gpu_check_figures(), **track_figures(), **cpu_run_figures(), **data_figures(),
-            **fresh_figures(), **cap_figures(), **precision_figures(), **gated_figures()}
+            **fresh_figures(), **cap_figures(), **precision_figures(), **gated_figures(), **forks_figures()}
 
 
 def fill(text: str, source: str) -> str:

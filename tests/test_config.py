@@ -65,6 +65,9 @@ def test_t4_preset_needs_a_gpu_for_fp16_and_says_so():
     (dict(kl_schedule="cosine"), "kl_schedule", "constant, reward_aware"),
     (dict(save_every=0), "save_every", "from 1 to"),
     (dict(max_grad_norm=0.0), "max_grad_norm", "> 0"),
+    (dict(top_entropy_quantile=0.0), "top_entropy_quantile", "a share of the tokens"),
+    (dict(top_entropy_quantile=1.2), "top_entropy_quantile", "in (0, 1]"),
+    (dict(top_entropy_quantile=float("nan")), "top_entropy_quantile", "finite"),
 ])
 def test_invalid_values_name_the_field_and_the_allowed_range(overrides, field, allowed):
     with pytest.raises(ConfigError) as err:

@@ -464,11 +464,17 @@ def test_the_precision_figures_refuse_prose_the_stored_runs_stop_supporting(monk
     (["gated/fresh/punished-seed21/summary.json"], {"cpu_capability": "AVX2"}, "both ran in bf16 on one CPU"),
 ])
 def test_the_gated_figures_refuse_a_pair_that_is_not_what_6_8_says(monkeypatch, files, changes, mistake):
-    figures.gated_figures()  # the stored files pass
+    _refused_after_changes(monkeypatch, figures.gated_figures, files, changes, mistake)
+
+
+def _refused_after_changes(monkeypatch, build, files, changes, mistake):
+    """``build`` passes on the stored files, and refuses them with ``mistake`` once each of
+    ``files`` (JSON, relative to results/) has ``changes`` merged into it."""
+    build()
     real = figures._json
     monkeypatch.setattr(figures, "_json", lambda rel: {**real(rel), **changes} if rel in files else real(rel))
     with pytest.raises(ValueError, match=mistake):
-        figures.gated_figures()
+        build()
 
 
 def test_dead_end_names_how_a_run_without_a_template_ended():
@@ -673,3 +679,102 @@ def test_the_gated_figures_refuse_a_credit_that_pays_right_digits_differently(mo
     monkeypatch.setattr(rewards, "gated_score", lambda *a: 0.99 * real(*a))
     with pytest.raises(ValueError, match="pay a reply with the right digits alike"):
         figures.gated_figures()
+
+
+@pytest.mark.parametrize("files, changes, mistake", [
+    (["forks/forks-seed16/config.json"], {"lr": 1e-4}, "nothing else changed"),
+    (["forks/forks-seed16/config.json"], {"top_entropy_quantile": 0.5}, "nothing else changed"),
+    (["forks/forks-seed16/config.json"], {"seed": 17}, "nothing else changed"),
+    (["forks/forks-seed16/summary.json"], {"precision": "fp32"}, "bf16 on a CPU with AMX"),
+    (["forks/forks-seed16/summary.json"], {"cpu": {"model": "AMD EPYC", "bf16_units": "AVX512-BF16"}},
+     "bf16 on a CPU with AMX"),
+    ([figures.FORKS_RERUN + "/config.json"], {"kl_coef": 0.0}, "reruns gated-seed16"),
+    ([figures.FORKS_RERUN + "/summary.json"], {"cpu": {"model": "AMD EPYC", "bf16_units": "none"}},
+     "ran on a CPU with AMX"),
+])
+def test_the_forks_figures_refuse_a_run_that_is_not_what_6_9_says(monkeypatch, files, changes, mistake):
+    _refused_after_changes(monkeypatch, figures.forks_figures, files, changes, mistake)
+
+
+@pytest.mark.parametrize("step, key, value", [(0, "loss", 0.123), (4, "reward_mean", 0.0), (2, "entropy", 1.0)])
+def test_the_forks_figures_refuse_a_rerun_that_does_not_match_its_control(monkeypatch, step, key, value):
+    """6.9 takes 6.8's stored gated runs as controls because one of them, rerun for its first
+    steps on the forks runs' machine, matched bitwise: a rerun that differs in any logged number
+    (timings aside) is refused, and so is one with a step missing."""
+    from course_utils import ablation
+    real = ablation.records
+
+    def altered(run):
+        steps = real(run)
+        if run.name == Path(figures.FORKS_RERUN).name:
+            steps[step] = {**steps[step], key: value}
+        return steps
+    monkeypatch.setattr(ablation, "records", altered)
+    with pytest.raises(ValueError, match="bitwise"):
+        figures.forks_figures()
+    monkeypatch.setattr(ablation, "records", lambda run: real(run)[:-1] if run.name == Path(figures.FORKS_RERUN).name
+                        else real(run))
+    with pytest.raises(ValueError, match="bitwise"):
+        figures.forks_figures()
+
+
+def test_the_forks_figures_refuse_a_seed_with_a_run_missing(monkeypatch, tmp_path):
+    monkeypatch.setattr(figures, "FORKS_SEEDS", (*figures.FORKS_SEEDS, 99))
+    with pytest.raises(ValueError, match="tuning seeds"):   # seed 99 has no control
+        figures.forks_pair_runs()
+    monkeypatch.undo()
+    monkeypatch.setattr(figures, "RESULTS", tmp_path)          # no run stored at all
+    with pytest.raises(ValueError, match=f"missing .*forks-seed{figures.FORKS_SEEDS[0]}"):
+        figures.forks_pair_runs()
+
+
+def _forks_after(real, runs, **greedy):
+    """figures._json with the held-out greedy results of ``runs`` changed."""
+    def read(rel):
+        value = real(rel)
+        if any(rel == f"forks/{run}/summary.json" for run in runs):
+            value = json.loads(json.dumps(value))
+            value["after"]["greedy"].update(greedy)
+        return value
+    return read
+
+
+def test_the_forks_figures_refuse_prose_the_runs_stop_supporting(monkeypatch):
+    """6.9 says every forks run ended with a higher entropy and more replies cut off than its
+    control, and fewer held-out replies of the right length; and drops the lever because it did
+    worse on average. A run that breaks one of those is refused, with the claim named."""
+    from course_utils import ablation
+    real_json, real_records = figures._json, ablation.records
+    first = f"forks-seed{figures.FORKS_SEEDS[0]}"
+    monkeypatch.setattr(figures, "_json", _forks_after(real_json, [first], pass_length=1.0))
+    with pytest.raises(ValueError, match="fewer held-out replies of the right length"):
+        figures.forks_figures()
+    every = [f"forks-seed{s}" for s in figures.FORKS_SEEDS]
+    monkeypatch.setattr(figures, "_json", _forks_after(real_json, every, pass_both=1.0))
+    with pytest.raises(ValueError, match="did worse"):
+        figures.forks_figures()
+    monkeypatch.setattr(figures, "_json", _forks_after(real_json, [first], pass_both=1 / 64))
+    with pytest.raises(ValueError, match="no forks run passed a held-out prompt"):
+        figures.forks_figures()
+    monkeypatch.setattr(figures, "_json", real_json)
+    for key, value, claim in (("entropy", 0.0, "higher entropy"), ("truncated_frac", 0.0, "more replies cut off")):
+        monkeypatch.setattr(ablation, "records", lambda run: [{**x, key: value} for x in real_records(run)]
+                            if run.name == first else real_records(run))
+        with pytest.raises(ValueError, match=claim):
+            figures.forks_figures()
+
+
+def test_the_forks_run_script_changes_the_gated_recipe_in_one_setting():
+    """benchmarks/forks_runs.py builds what 6.9 says it ran: the stored gated config on the seed,
+    top_entropy_quantile added for the forks arm and nothing else, the control unchanged."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("forks_runs", ROOT / "benchmarks" / "forks_runs.py")
+    forks_runs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(forks_runs)
+    stored = figures._config_with_defaults("gated/tuning/gated-seed17")
+    for control, changed in ((False, {"top_entropy_quantile"}), (True, set())):
+        cfg = forks_runs.config_for(17, control, None).to_dict()
+        assert {k for k in stored if k != "out_dir" and cfg[k] != stored[k]} == changed
+    assert forks_runs.config_for(17, False, None).top_entropy_quantile == figures.FORKS_QUANTILE
+    assert forks_runs.config_for(16, True, 5).max_steps == 5
+    assert forks_runs.config_for(16, True, 5).out_dir.endswith("gated-seed16-steps5")

@@ -299,3 +299,107 @@ def test_reward_aware_kl_by_hand():
     assert kl.coefficient(flat) == pytest.approx(0.4)
     kl.observe_gradient(float("nan"))                     # a skipped step does not poison it
     assert kl.last_grad == 2.0
+
+
+# ---------------------------------------------------------------- the top-entropy mask (80/20)
+
+
+def test_high_entropy_mask_by_hand_ties_and_padding():
+    # real entropies 0.1 0.2 0.3 0.4 0.5 (padding 9.0 must not count, nor be kept): the 0.6
+    # quantile (rho = 0.4) interpolates to 0.34, so 0.4 and 0.5 are kept
+    ent = torch.tensor([[0.1, 0.5, 9.0], [0.3, 0.2, 0.4]])
+    mask = torch.tensor([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    kept = losses.high_entropy_mask(ent, mask, 0.4)
+    assert kept.tolist() == [[0, 1, 0], [0, 0, 1]]
+    assert losses.high_entropy_mask(ent, mask, 1.0).tolist() == mask.tolist()   # rho = 1: every real token
+    tied = losses.high_entropy_mask(torch.full((2, 3), 0.7), torch.ones(2, 3), 0.2)
+    assert tied.sum() == 6                                 # >= at a tie keeps them all, as TRL does
+    assert losses.high_entropy_mask(ent, torch.zeros(2, 3), 0.2).sum() == 0
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="top_quantile"):
+            losses.high_entropy_mask(ent, mask, bad)
+
+
+@pytest.mark.parametrize("seed, shape, rho, loss_type", [(0, (4, 6), 0.2, "grpo"), (1, (8, 3), 0.5, "dapo"),
+                                                          (2, (5, 9), 0.8, "dr_grpo")])
+def test_top_entropy_quantile_trains_the_policy_term_at_the_forks_only(seed, shape, rho, loss_type):
+    # against a second implementation: sort the real tokens' entropies and keep those at or above
+    # the (1 - rho) quantile read off by hand; the KL term and the denominator keep every token
+    g = torch.Generator().manual_seed(seed)
+    n, T = shape
+    logp = (torch.randn(n, T, generator=g) - 1).requires_grad_(True)
+    ref = torch.randn(n, T, generator=g) - 1
+    ent = torch.rand(n, T, generator=g) * 2
+    mask = (torch.rand(n, T, generator=g) > 0.25).float()
+    mask[:, 0] = 1
+    adv = torch.randn(n, generator=g)
+    ent_before, mask_before = ent.clone(), mask.clone()
+    values = sorted(ent[mask.bool()].tolist())
+    pos = (1 - rho) * (len(values) - 1)
+    lo, frac = int(pos), pos - int(pos)
+    threshold = values[lo] + frac * (values[min(lo + 1, len(values) - 1)] - values[lo])
+    forks = ((ent >= threshold - 1e-7) & mask.bool()).float()
+    assert 0 < forks.sum() < mask.sum()
+    kw = dict(loss_type=loss_type, ref_logprobs=ref, beta=0.05, entropy=ent, max_completion_length=T)
+    loss, stats = losses.grpo_loss(logp, logp.detach(), adv, mask, top_entropy_quantile=rho, **kw)
+    (grad,) = torch.autograd.grad(loss, logp)
+    by_hand = -forks * adv[:, None] * torch.exp(logp - logp.detach()) + 0.05 * losses.k3_kl(logp, ref)
+    expected = losses.aggregate(by_hand, mask, loss_type, T)
+    (grad_by_hand,) = torch.autograd.grad(expected, logp)
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-5, abs=1e-7)
+    assert torch.allclose(grad, grad_by_hand, atol=1e-6)
+    assert stats["high_entropy_frac"] == pytest.approx(float(forks.sum() / mask.sum()))
+    assert torch.equal(ent, ent_before) and torch.equal(mask, mask_before)
+    # a policy term at the low-entropy tokens is gone: with beta = 0 their gradient is exactly 0
+    loss0, _ = losses.grpo_loss(logp, logp.detach(), adv, mask, top_entropy_quantile=rho,
+                                loss_type=loss_type, entropy=ent, max_completion_length=T)
+    (grad0,) = torch.autograd.grad(loss0, logp)
+    assert torch.all(grad0[forks == 0] == 0) and torch.any(grad0[forks == 1] != 0)
+    # rho = 1 is the plain loss, bitwise
+    full, _ = losses.grpo_loss(logp, logp.detach(), adv, mask, top_entropy_quantile=1.0, **kw)
+    plain, _ = losses.grpo_loss(logp, logp.detach(), adv, mask, **kw)
+    assert torch.equal(full, plain)
+
+
+def test_top_entropy_quantile_needs_the_entropy():
+    with pytest.raises(ValueError, match="entropy"):
+        losses.grpo_loss(torch.zeros(2, 3), torch.zeros(2, 3), torch.zeros(2), torch.ones(2, 3),
+                         top_entropy_quantile=0.2)
+
+
+def test_high_entropy_mask_leaves_its_inputs_alone():
+    ent = torch.tensor([[0.1, 0.5, 9.0], [0.3, 0.2, 0.4]], requires_grad=True)   # as from the model
+    mask = torch.tensor([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    ent_before, mask_before = ent.detach().clone(), mask.clone()
+    kept = losses.high_entropy_mask(ent, mask, 0.4)
+    assert kept.tolist() == [[0, 1, 0], [0, 0, 1]]
+    assert torch.equal(ent, ent_before) and torch.equal(mask, mask_before)   # padding's 9.0 still there
+    assert not kept.requires_grad
+
+
+@pytest.mark.parametrize("seed, rho", [(0, 0.2), (1, 0.5)])
+def test_top_entropy_quantile_keeps_the_entropy_bonus_and_the_sampling_weights(seed, rho):
+    # the mask acts on the clipped surrogate alone: the off-policy weights still weight it, and
+    # the entropy bonus still reaches every real token, kept or not
+    g = torch.Generator().manual_seed(seed)
+    n, T = 6, 5
+    logp = (torch.randn(n, T, generator=g) - 1).requires_grad_(True)
+    old = logp.detach() + 0.05 * torch.randn(n, T, generator=g)
+    ent = (torch.rand(n, T, generator=g) * 2).requires_grad_(True)
+    mask = (torch.rand(n, T, generator=g) > 0.25).float()
+    mask[:, 0] = 1
+    adv = torch.randn(n, generator=g)
+    w = torch.rand(n, T, generator=g) + 0.5
+    forks = losses.high_entropy_mask(ent, mask, rho)
+    assert 0 < forks.sum() < mask.sum()
+    loss, _ = losses.grpo_loss(logp, old, adv, mask, entropy=ent, entropy_weight=0.01,
+                               sampling_weights=w, top_entropy_quantile=rho, loss_type="dapo")
+    surrogate, _ = losses.clipped_surrogate(logp, old, adv)
+    by_hand = losses.aggregate(forks * w * surrogate - 0.01 * ent, mask, "dapo")
+    assert loss.item() == pytest.approx(by_hand.item(), rel=1e-6)
+    g_loss = torch.autograd.grad(loss, (logp, ent))
+    g_hand = torch.autograd.grad(by_hand, (logp, ent))
+    assert all(torch.allclose(a, b, atol=1e-7) for a, b in zip(g_loss, g_hand))
+    assert torch.allclose(g_loss[1], -0.01 * mask / mask.sum())
+    _, plain = losses.grpo_loss(logp, old, adv, mask, entropy=ent, top_entropy_quantile=1.0)
+    assert "high_entropy_frac" not in plain

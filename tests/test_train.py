@@ -215,6 +215,15 @@ def test_the_log_counts_the_two_digit_groups_without_spread(monkeypatch):
     assert metrics["samples_two_digit"] == 3 * policy.cfg.group_size
 
 
+def test_top_entropy_quantile_reaches_the_loss_and_is_logged():
+    # the step trains the policy term on about the top quarter of its tokens by entropy (ties at
+    # the threshold are all kept, so the share can exceed 0.25) and logs the share it kept
+    prompts = [Prompt(text=t, snippet=t, target_chars=48, target_digit_sum=5) for t in ("One two", "Three")]
+    metrics = train.grpo_step(train.setup(load_config("smoke", top_entropy_quantile=0.25)), prompts)
+    assert 0.2 <= metrics["high_entropy_frac"] < 1
+    assert "high_entropy_frac" not in train.grpo_step(train.setup(load_config("smoke")), prompts)
+
+
 def test_kl_to_the_reference_starts_at_zero_and_several_updates_clip():
     cfg = load_config("smoke", kl_coef=0.1, updates_per_batch=3, lr=1e-2, grad_accum=1)
     policy = train.setup(cfg)

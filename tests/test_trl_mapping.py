@@ -53,6 +53,7 @@ VARIANTS = {
     "constant entropy": dict(entropy_bonus="constant", entropy_coef=0.003),
     "dapo clip-higher overlong": dict(loss_type="dapo", clip_eps_high=0.28, overlong_filter=True),
     "bnpo, two updates, KL": dict(loss_type="bnpo", updates_per_batch=2, kl_coef=0.04),
+    "top-entropy fifth": dict(top_entropy_quantile=0.2),
     "dr grpo, accumulation, warm-up": dict(loss_type="dr_grpo", advantage_scale="none",
                                            grad_accum=2, warmup_steps=5, max_steps=None),
 }
@@ -79,7 +80,7 @@ def test_the_kwargs_build_a_grpo_config_that_holds_the_courses_values(variant):
     assert (args.epsilon, args.epsilon_high) == (cfg.clip_eps_low, cfg.clip_eps_high)
     assert args.beta == cfg.kl_coef and args.use_bias_correction_kl is False
     assert args.mask_truncated_completions == cfg.overlong_filter
-    assert args.top_entropy_quantile == 1.0 and args.importance_sampling_level == "token"
+    assert args.top_entropy_quantile == cfg.top_entropy_quantile and args.importance_sampling_level == "token"
     assert args.bf16 is False and args.fp16 is False       # fp32, not TRL's bf16 default
     assert args.gradient_checkpointing == cfg.gradient_checkpointing
     assert args.use_cpu is True and args.seed == cfg.seed
@@ -123,6 +124,16 @@ def test_the_mismatch_correction_reaches_trls_vllm_flags(mode, clip_max):
     assert args.vllm_importance_sampling_correction is (mode != "none")
     assert args.vllm_importance_sampling_mode == ("sequence_mask" if mode == "none" else mode)
     assert args.vllm_importance_sampling_clip_max == clip_max
+
+
+def test_the_top_entropy_mask_with_an_entropy_bonus_is_named_as_a_difference():
+    # TRL 1.16 applies its entropy bonus on the kept tokens only; the course's covers every token
+    cfg = Config.from_dict({**PRESETS["cpu"], "top_entropy_quantile": 0.2, "entropy_bonus": "adaptive",
+                            "entropy_coef": 0.01})
+    _, left_out = trl_mapping.grpo_config_kwargs(cfg)
+    assert left_out == ["top_entropy_quantile with an entropy bonus (TRL applies its bonus, and measures "
+                        "its adaptive target, on the kept tokens only; the course on every token)"]
+    assert trl_mapping.grpo_config_kwargs(Config.from_dict({**PRESETS["cpu"], "top_entropy_quantile": 0.2}))[1] == []
 
 
 def test_the_curriculum_is_named_beside_the_prioritized_sampling_it_needs():

@@ -331,7 +331,8 @@ exercises.check_grpo_backward(grpo_backward)
 # is the number to watch for collapse (lesson 7 diagnoses a run by it), and the one an entropy
 # bonus pushes up (GRPO itself has none). TRL logs it every step, and its
 # `top_entropy_quantile` $= \rho$ keeps only the top-$\rho$ share of tokens by entropy in the
-# policy term (the KL term still covers every token).
+# policy term (the KL term still covers every token). The course's trainer has the same option
+# (`--top_entropy_quantile`, `losses.high_entropy_mask`), and lesson 7, section 6.9 tries it.
 #
 # ### Exercise 6.4 — token entropy
 #
