@@ -981,7 +981,7 @@ def gated_figures() -> dict[str, str]:
 # step's tokens by entropy, top_entropy_quantile), screened on 6.8's tuning seeds against their
 # stored gated runs (benchmarks/forks_runs.py). The controls were not rerun in full: a rerun of
 # one for its first steps on the forks runs' machine matched it bitwise.
-FORKS_SEEDS = (16, 17, 18)
+FORKS_SEEDS = GATED_TUNING_SEEDS
 FORKS_QUANTILE = 0.2
 FORKS_RERUN = "forks/rerun-gated-seed16-steps5"
 # the keys of a step's log that the machine's speed moves and its arithmetic does not
