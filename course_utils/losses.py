@@ -180,9 +180,10 @@ def high_entropy_mask(entropy: torch.Tensor, mask: torch.Tensor, top_quantile: f
     """1 at the real tokens whose entropy is at or above the (1 - rho) quantile of the real
     tokens' entropies (rho = ``top_quantile``), else 0: the "forking" tokens of Wang et al.
     (2025, "Beyond the 80/20 rule"), where a reply can still go several ways. TRL's
-    ``get_high_entropy_mask``: ``torch.quantile``'s linear interpolation, ``>=``, so a tie at
-    the threshold keeps every tied token and rho = 1 keeps every real token. No gradient: the
-    mask only chooses which tokens the policy term trains."""
+    ``get_high_entropy_mask`` (which first gathers the entropies from every process):
+    ``torch.quantile``'s linear interpolation, then ``>=``, so every token tied at the threshold
+    is kept and rho = 1 keeps every real token. No gradient: the mask only chooses which tokens
+    the policy term trains."""
     if not 0 < top_quantile <= 1:
         raise ValueError(f"top_quantile must be in (0, 1], got {top_quantile}")
     real = mask.bool()
@@ -340,7 +341,8 @@ def grpo_loss(logprobs: torch.Tensor, old_logprobs: torch.Tensor, advantages: to
     since the KL and entropy terms are computed under the trainer itself.
     ``top_entropy_quantile`` rho < 1 keeps the surrogate only at the top rho share of tokens by
     ``entropy`` (``high_entropy_mask``; TRL's option of that name): the others still count in the
-    average's denominator and still get the KL and entropy terms, as in TRL.
+    average's denominator and still get the KL term, as in TRL, and the entropy bonus too, where
+    TRL 1.16 applies its bonus (and measures its adaptive target) on the kept tokens only.
     """
     # Whatever padding positions hold must not matter, not even an inf (0 * inf is NaN): replace
     # it with 0 before any exp, which also keeps the gradient at padding exactly 0.
