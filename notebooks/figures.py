@@ -1037,12 +1037,6 @@ def _check_forks_pairs() -> None:
 BARE_CHARS, ECHO_CHARS = 5, 40
 
 
-def _sampled_passes(run: Path, steps: list[dict]) -> int:
-    """The replies sampled in a run's training that passed both constraints."""
-    config = _json(f"{_relative(run)}/config.json")
-    return sum(round(x["pass_both"] * config["prompts_per_step"] * config["group_size"]) for x in steps)
-
-
 def forks_figures() -> dict[str, str]:
     """Lesson 7, 6.9: the forks arm against 6.8's gated runs on the tuning seeds, and the checks
     of what its prose says of them."""
@@ -1053,7 +1047,12 @@ def forks_figures() -> dict[str, str]:
     arms = {"forks": forks, "gated": control}
     after = {r: _json(f"{_relative(r)}/summary.json")["after"]["greedy"] for r in forks + control}
     logs = {r: ablation.records(r) for r in forks + control}
-    sampled = {arm: [_sampled_passes(r, logs[r]) for r in runs] for arm, runs in arms.items()}
+    # the replies sampled in training that passed both constraints, all and two-digit ones
+    # (ablation.sampled_passes, in one window per run)
+    trained = {r: ablation.sampled_passes(r, width=len(logs[r]))[0] for r in forks + control}
+    sampled = {arm: [trained[r]["one_passed"] + trained[r]["two_passed"] for r in runs] for arm, runs in arms.items()}
+    entropy_end = {r: ablation.tail_mean(logs[r], "entropy") for r in forks + control}
+    truncated = {r: statistics.mean(x["truncated_frac"] for x in logs[r]) for r in forks + control}
     figs = {"forks.seed_list": _seeds(list(FORKS_SEEDS)), "forks.quantile": f"{FORKS_QUANTILE}",
             "forks.share": f"{FORKS_QUANTILE:.0%}",
             "forks.rerun_steps": f"{_config_with_defaults(FORKS_RERUN)['max_steps']}",
@@ -1066,12 +1065,12 @@ def forks_figures() -> dict[str, str]:
                  f"forks.{arm}_worst": f"{min(after[r]['pass_both'] for r in runs):.1%}",
                  f"forks.{arm}_two_mean": f"{statistics.mean(after[r]['pass_both_two_digit'] for r in runs):.1%}",
                  f"forks.{arm}_sampled": _seeds(sampled[arm]),
-                 f"forks.{arm}_two_of": per_run(lambda r: f"{sum(x['passes_two_digit'] for x in logs[r])} of "
-                                                          f"{sum(x['samples_two_digit'] for x in logs[r]):,}"),
+                 f"forks.{arm}_two_of": per_run(lambda r: f"{trained[r]['two_passed']} of "
+                                                          f"{trained[r]['two_sampled']:,}"),
                  f"forks.{arm}_digits_sampled": per_run(lambda r: statistics.mean(x["pass_digits"] for x in logs[r]), ".0%"),
-                 f"forks.{arm}_entropy_end": per_run(lambda r: ablation.tail_mean(logs[r], "entropy"), ".2f"),
+                 f"forks.{arm}_entropy_end": per_run(entropy_end.get, ".2f"),
                  f"forks.{arm}_tokens": per_run(lambda r: ablation.tail_mean(logs[r], "completion_tokens"), ".1f"),
-                 f"forks.{arm}_truncated": per_run(lambda r: statistics.mean(x["truncated_frac"] for x in logs[r]), ".0%"),
+                 f"forks.{arm}_truncated": per_run(truncated.get, ".0%"),
                  f"forks.{arm}_length_ok": per_run(lambda r: after[r]["pass_length"], ".1%"),
                  f"forks.{arm}_kl": per_run(lambda r: statistics.mean(x["kl"] for x in logs[r]), ".2f"),
                  f"forks.{arm}_bonus_steps": per_run(lambda r: sum(x["entropy_weight"] > 0 for x in logs[r]))}
@@ -1080,11 +1079,10 @@ def forks_figures() -> dict[str, str]:
     # run passed a held-out prompt or sampled as many passes as any control; its adaptive bonus
     # never switched on; and the verdict, dropping the lever, needs it to have done worse
     pairs = list(zip(forks, control))
-    entropy_end = [[ablation.tail_mean(logs[r], "entropy") for r in pair] for pair in pairs]
-    truncated = [[statistics.mean(x["truncated_frac"] for x in logs[r]) for r in pair] for pair in pairs]
-    for what, values in (("ended with a higher entropy", entropy_end), ("had more replies cut off", truncated)):
-        if not all(f > c for f, c in values):
-            raise ValueError(f"lesson 7, 6.9 says every forks run {what} than its control: {values}")
+    for what, value in (("ended with a higher entropy", entropy_end), ("had more replies cut off", truncated)):
+        if not all(value[f] > value[c] for f, c in pairs):
+            raise ValueError(f"lesson 7, 6.9 says every forks run {what} than its control: "
+                             f"{[[value[r] for r in pair] for pair in pairs]}")
     length_ok = [[after[r]["pass_length"] for r in pair] for pair in pairs]
     if not all(f < c for f, c in length_ok):
         raise ValueError(f"lesson 7, 6.9 says every forks run had fewer held-out replies of the right length: {length_ok}")
