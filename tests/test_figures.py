@@ -728,17 +728,6 @@ def test_the_forks_figures_refuse_a_seed_with_a_run_missing(monkeypatch, tmp_pat
         figures.forks_pair_runs()
 
 
-def _forks_after(real, runs, **greedy):
-    """figures._json with the held-out greedy results of ``runs`` changed."""
-    def read(rel):
-        value = real(rel)
-        if any(rel == f"forks/{run}/summary.json" for run in runs):
-            value = json.loads(json.dumps(value))
-            value["after"]["greedy"].update(greedy)
-        return value
-    return read
-
-
 def test_the_forks_figures_refuse_prose_the_runs_stop_supporting(monkeypatch):
     """6.9 says every forks run ended with a higher entropy and more replies cut off than its
     control, and fewer held-out replies of the right length; and drops the lever because it did
@@ -746,14 +735,14 @@ def test_the_forks_figures_refuse_prose_the_runs_stop_supporting(monkeypatch):
     from course_utils import ablation
     real_json, real_records = figures._json, ablation.records
     first = f"forks-seed{figures.FORKS_SEEDS[0]}"
-    monkeypatch.setattr(figures, "_json", _forks_after(real_json, [first], pass_length=1.0))
+    monkeypatch.setattr(figures, "_json", _lifted_after(real_json, [first], pass_length=1.0))
     with pytest.raises(ValueError, match="fewer held-out replies of the right length"):
         figures.forks_figures()
     every = [f"forks-seed{s}" for s in figures.FORKS_SEEDS]
-    monkeypatch.setattr(figures, "_json", _forks_after(real_json, every, pass_both=1.0))
+    monkeypatch.setattr(figures, "_json", _lifted_after(real_json, every, pass_both=1.0))
     with pytest.raises(ValueError, match="did worse"):
         figures.forks_figures()
-    monkeypatch.setattr(figures, "_json", _forks_after(real_json, [first], pass_both=1 / 64))
+    monkeypatch.setattr(figures, "_json", _lifted_after(real_json, [first], pass_both=1 / 64))
     with pytest.raises(ValueError, match="no forks run passed a held-out prompt"):
         figures.forks_figures()
     monkeypatch.setattr(figures, "_json", real_json)
